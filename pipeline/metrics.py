@@ -1,0 +1,72 @@
+"""Trajectory and rendering metrics, named for exactly what they compute."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pipeline.frame import DeviceFrame
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.losses import psnr, ssim_map
+
+
+@dataclass
+class TrajectoryError:
+    rmse_m: float  # root of the mean squared camera-centre error after alignment
+    mean_m: float  # mean camera-centre error after alignment
+    median_m: float
+    max_m: float
+    frames: int
+
+
+def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotation [3, 3] and translation [3] (no scale) taking points source [N, 3] onto target."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.eye(3)
+    d[2, 2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rotation = u @ d @ vt
+    return rotation, mu_t - rotation @ mu_s
+
+
+def absolute_trajectory_error(estimated_c2w: np.ndarray, reference_c2w: np.ndarray) -> TrajectoryError:
+    """ATE of camera centres [N, 4, 4] after a rigid (rotation + translation) alignment of the estimate."""
+    est, ref = estimated_c2w[:, :3, 3], reference_c2w[:, :3, 3]
+    rotation, translation = rigid_alignment(est, ref)
+    errors = np.linalg.norm(est @ rotation.T + translation - ref, axis=1)
+    return TrajectoryError(
+        rmse_m=float(np.sqrt(np.mean(errors**2))),
+        mean_m=float(errors.mean()),
+        median_m=float(np.median(errors)),
+        max_m=float(errors.max()),
+        frames=len(errors),
+    )
+
+
+@dataclass
+class ViewQuality:
+    psnr_db: float
+    ssim: float
+    depth_l1_cm: float
+
+
+@torch.no_grad()
+def view_quality(
+    renderer: Renderer, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor, near: float, far: float
+) -> ViewQuality:
+    """Render at the estimated pose and compare with the input over valid-depth pixels."""
+    camera = Camera(torch.linalg.inv(c2w), frame.intrinsics, frame.width, frame.height, near, far)
+    out = renderer(gaussians, camera)
+    valid = frame.depth > 0
+    if not bool(valid.any()):
+        return ViewQuality(math.nan, math.nan, math.nan)
+    color = out.color.clamp(0, 1)
+    return ViewQuality(
+        psnr_db=psnr(color, frame.color, valid),
+        ssim=float(ssim_map(color, frame.color)[valid].mean()),
+        depth_l1_cm=float((out.depth - frame.depth).abs()[valid].mean()) * 100.0,
+    )

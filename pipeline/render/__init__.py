@@ -1,0 +1,54 @@
+"""Differentiable rendering of Gaussians: colour, expected depth and silhouette in one call.
+
+`make_renderer` picks the backend once; every caller then uses the same signature:
+`renderer(gaussians, camera) -> RenderOutput`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+
+import torch
+
+from pipeline.config import GaussianConfig, RenderConfig
+from pipeline.errors import UserError
+from pipeline.render.reference import render_reference
+from pipeline.render.types import Camera, Gaussians, RenderOutput
+
+Renderer = Callable[[Gaussians, Camera], RenderOutput]
+
+FLAT_LOG_SCALE = -9.0  # log-scale of the normal axis when 2D Gaussians run on the reference backend
+
+__all__ = ["Camera", "Gaussians", "RenderOutput", "Renderer", "make_renderer", "resolve_backend"]
+
+
+def resolve_backend(config: RenderConfig, device: torch.device) -> str:
+    if config.backend == "auto":
+        return "gsplat" if device.type == "cuda" else "reference"
+    if config.backend == "gsplat" and device.type != "cuda":
+        raise UserError("render.backend=gsplat needs a CUDA device (use auto or reference)")
+    return config.backend
+
+
+def _flattened(render: Renderer) -> Renderer:
+    """2D Gaussians on the reference backend: 3D Gaussians squashed along their third axis."""
+
+    def render_flat(gaussians: Gaussians, camera: Camera) -> RenderOutput:
+        scales = gaussians.log_scales.expand(-1, 3)
+        flat = torch.cat([scales[:, :2], torch.full_like(scales[:, :1], FLAT_LOG_SCALE)], dim=1)
+        squashed = Gaussians(gaussians.means, gaussians.quats, flat, gaussians.opacity_logits, gaussians.colors)
+        return render(squashed, camera)
+
+    return render_flat
+
+
+def make_renderer(config: RenderConfig, gaussians: GaussianConfig, device: torch.device) -> Renderer:
+    backend = resolve_backend(config, device)
+    if backend == "gsplat":
+        from pipeline.render import gsplat_backend
+
+        fn = gsplat_backend.render_gsplat_2d if gaussians.kind == "2d" else gsplat_backend.render_gsplat_3d
+        return partial(fn, eps2d=config.eps2d, packed=config.packed)
+    reference = partial(render_reference, eps2d=config.eps2d)
+    return _flattened(reference) if gaussians.kind == "2d" else reference

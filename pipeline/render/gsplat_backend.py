@@ -1,0 +1,78 @@
+"""The CUDA renderer: one gsplat rasterisation per call gives colour, depth and silhouette.
+
+Imported only when CUDA is available: importing gsplat's CUDA backend on a machine with nvcc
+but no GPU starts a long JIT compile that fails.
+
+Choices (measured in bench/results/rendering.md):
+- `render_mode="RGB+ED"`: depth rides along as a fourth colour channel, normalised by alpha,
+  so one pass returns all three images; the camera-pose gradient flows through `viewmats`.
+- `rasterize_mode="classic"`: SplaTAM composites without the antialiasing compensation, and
+  the reference backend reproduces classic exactly.
+- `packed`: configurable (RenderConfig.packed); unpacked is the default because on the H100 it
+  was faster at SLAM map sizes (see the results file).
+- `eps2d=0.3`: gsplat's default 2D dilation, which keeps sub-pixel Gaussians at least ~0.5 px wide.
+"""
+
+from __future__ import annotations
+
+import gsplat
+import torch
+
+from pipeline.render.types import Camera, Gaussians, RenderOutput
+
+
+def _output(colors: torch.Tensor, alphas: torch.Tensor, radii: torch.Tensor, n: int) -> RenderOutput:
+    radii = radii.reshape(n, -1).amax(-1)
+    return RenderOutput(colors[0, ..., :3], colors[0, ..., 3], alphas[0, ..., 0], radii, radii > 0)
+
+
+def _radii_per_gaussian(meta: dict, n: int, packed: bool) -> torch.Tensor:
+    if not packed:
+        return meta["radii"]
+    full = torch.zeros((n, 2), dtype=torch.int32, device=meta["radii"].device)
+    full[meta["gaussian_ids"]] = meta["radii"].reshape(-1, 2) if meta["radii"].dim() > 1 else meta["radii"][:, None]
+    return full
+
+
+def render_gsplat_3d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, packed: bool = False) -> RenderOutput:
+    colors, alphas, meta = gsplat.rasterization(
+        means=gaussians.means,
+        quats=gaussians.quats,
+        scales=gaussians.scales(),
+        opacities=torch.sigmoid(gaussians.opacity_logits),
+        colors=gaussians.colors,
+        viewmats=camera.w2c[None],
+        Ks=camera.intrinsics[None],
+        width=camera.width,
+        height=camera.height,
+        near_plane=camera.near,
+        far_plane=camera.far,
+        eps2d=eps2d,
+        packed=packed,
+        render_mode="RGB+ED",
+        rasterize_mode="classic",
+    )
+    radii = _radii_per_gaussian(meta, len(gaussians), packed)
+    return _output(colors, alphas, radii, len(gaussians))
+
+
+def render_gsplat_2d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, packed: bool = False) -> RenderOutput:
+    """2D Gaussian surfels (2DGS): the third scale axis is ignored by the rasteriser."""
+    colors, alphas, *_, meta = gsplat.rasterization_2dgs(
+        means=gaussians.means,
+        quats=gaussians.quats,
+        scales=gaussians.scales(),
+        opacities=torch.sigmoid(gaussians.opacity_logits),
+        colors=gaussians.colors,
+        viewmats=camera.w2c[None],
+        Ks=camera.intrinsics[None],
+        width=camera.width,
+        height=camera.height,
+        near_plane=camera.near,
+        far_plane=camera.far,
+        eps2d=eps2d,
+        packed=packed,
+        render_mode="RGB+ED",
+    )
+    radii = _radii_per_gaussian(meta, len(gaussians), packed)
+    return _output(colors, alphas, radii, len(gaussians))

@@ -1,0 +1,1 @@
+"""The SplaTAM algorithm: Gaussian map, tracking, densification, keyframes and mapping."""

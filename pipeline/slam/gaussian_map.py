@@ -1,0 +1,71 @@
+"""The Gaussian map: parameters as leaf tensors, created from RGB-D pixels, grown and pruned."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import torch
+
+from pipeline.config import GaussianConfig
+from pipeline.geometry import backproject, pixel_grid
+from pipeline.render.types import Gaussians
+
+
+def seed_gaussians(
+    color: torch.Tensor,
+    depth: torch.Tensor,
+    intrinsics: torch.Tensor,
+    c2w: torch.Tensor,
+    mask: torch.Tensor,
+    config: GaussianConfig,
+) -> Gaussians:
+    """One Gaussian per pixel of `mask` [H, W] (SplaTAM's initialisation).
+
+    colour [H, W, 3] in [0, 1], depth [H, W] metres, camera-to-world [4, 4]. Mean: the
+    back-projected pixel centre; colour: the pixel's; identity rotation; opacity 0.5;
+    scale: depth / mean focal length (one pixel's footprint), repeated when anisotropic.
+    """
+    u, v = pixel_grid(depth.shape[0], depth.shape[1], depth.device)
+    z = depth[mask]
+    means = backproject(u[mask], v[mask], z, intrinsics, c2w)
+    n = means.shape[0]
+    focal = (intrinsics[0, 0] + intrinsics[1, 1]) / 2
+    log_scale = torch.log(z / focal)[:, None]
+    axes = 1 if config.isotropic else 3
+    quats = torch.zeros(n, 4, device=depth.device)
+    quats[:, 0] = 1.0
+    return Gaussians(
+        means=means,
+        quats=quats,
+        log_scales=log_scale.expand(-1, axes).contiguous(),
+        opacity_logits=torch.zeros(n, device=depth.device),
+        colors=color[mask].clone(),
+    )
+
+
+PARAMETER_NAMES = tuple(f.name for f in fields(Gaussians))
+
+
+def as_leaves(gaussians: Gaussians) -> Gaussians:
+    """Detached copies that require gradients: the parameters an optimiser updates."""
+    return Gaussians(*(getattr(gaussians, name).detach().clone().requires_grad_(True) for name in PARAMETER_NAMES))
+
+
+def detached(gaussians: Gaussians) -> Gaussians:
+    """A view without gradients (for tracking and evaluation renders)."""
+    return Gaussians(*(getattr(gaussians, name).detach() for name in PARAMETER_NAMES))
+
+
+def concatenate(a: Gaussians, b: Gaussians) -> Gaussians:
+    return Gaussians(*(torch.cat([getattr(a, n).detach(), getattr(b, n).detach()]) for n in PARAMETER_NAMES))
+
+
+def select(gaussians: Gaussians, keep: torch.Tensor) -> Gaussians:
+    return Gaussians(*(getattr(gaussians, name).detach()[keep] for name in PARAMETER_NAMES))
+
+
+def prune_mask(gaussians: Gaussians, min_opacity: float, max_scale: float) -> torch.Tensor:
+    """[N] bool of the Gaussians to keep: opacity >= min_opacity and largest scale <= max_scale."""
+    opacity = torch.sigmoid(gaussians.opacity_logits)
+    largest = torch.exp(gaussians.log_scales).amax(-1)
+    return (opacity >= min_opacity) & (largest <= max_scale)

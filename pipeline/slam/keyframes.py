@@ -1,0 +1,67 @@
+"""Keyframes and their selection by overlap with the current frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.geometry import backproject, invert_pose, pixel_grid, project
+
+
+@dataclass
+class Keyframe:
+    index: int
+    color: torch.Tensor  # [H, W, 3] float32 in [0, 1]
+    depth: torch.Tensor  # [H, W] metres
+    c2w: torch.Tensor  # [4, 4] estimated camera-to-world
+
+
+def sample_valid_pixels(depth: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+    """Flat indices [<= count] of valid-depth pixels drawn without replacement."""
+    valid = torch.nonzero(depth.reshape(-1) > 0)[:, 0]
+    if len(valid) <= count:
+        return valid
+    pick = torch.randperm(len(valid), generator=generator, device="cpu")[:count].to(valid.device)
+    return valid[pick]
+
+
+def overlap_fractions(
+    depth: torch.Tensor,
+    intrinsics: torch.Tensor,
+    c2w: torch.Tensor,
+    keyframe_c2w: torch.Tensor,
+    pixels: torch.Tensor,
+) -> torch.Tensor:
+    """Fraction of the sampled pixels (flat indices into depth [H, W]) that land inside each
+    keyframe's image with positive depth: [K] for keyframe poses [K, 4, 4] (camera-to-world)."""
+    height, width = depth.shape
+    u, v = pixel_grid(height, width, depth.device)
+    points = backproject(u.reshape(-1)[pixels], v.reshape(-1)[pixels], depth.reshape(-1)[pixels], intrinsics, c2w)
+    uv, z = project(points[None], invert_pose(keyframe_c2w), intrinsics)
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
+    return inside.float().mean(-1)
+
+
+def select_window(
+    keyframes: list[Keyframe],
+    depth: torch.Tensor,
+    intrinsics: torch.Tensor,
+    c2w: torch.Tensor,
+    window: int,
+    samples: int,
+    generator: torch.Generator,
+) -> list[int]:
+    """Keyframe positions for mapping: overlapping ones in random order (at most window - 2),
+    plus the newest keyframe. The caller adds the current frame."""
+    if not keyframes:
+        return []
+    older = keyframes[:-1]
+    chosen: list[int] = []
+    if older:
+        pixels = sample_valid_pixels(depth, samples, generator)
+        poses = torch.stack([kf.c2w for kf in older])
+        overlapping = torch.nonzero(overlap_fractions(depth, intrinsics, c2w, poses, pixels) > 0)[:, 0].cpu()
+        order = torch.randperm(len(overlapping), generator=generator)
+        chosen = overlapping[order][: max(window - 2, 0)].tolist()
+    return chosen + [len(keyframes) - 1]

@@ -1,0 +1,85 @@
+"""Mapping: optimise the Gaussians against a window of keyframes with their poses fixed."""
+
+from __future__ import annotations
+
+import random
+
+import torch
+
+from pipeline.config import LossConfig, MappingConfig
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, prune_mask
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.losses import ssim
+
+
+def mapping_loss(
+    render_color: torch.Tensor, render_depth: torch.Tensor, view: Keyframe, ssim_weight: float, weights: LossConfig
+) -> torch.Tensor:
+    """Mean L1 depth over valid depth + colour (1 - w) x L1 + w x (1 - SSIM) over the image."""
+    valid = view.depth > 0
+    depth_l1 = torch.where(valid, (render_depth - view.depth).abs(), 0.0).sum() / valid.sum().clamp(min=1)
+    color_l1 = (render_color - view.color).abs().mean()
+    color = (1 - ssim_weight) * color_l1 + ssim_weight * (1 - ssim(render_color, view.color))
+    return weights.depth_weight * depth_l1 + weights.color_weight * color
+
+
+def _learning_rates(config: MappingConfig) -> dict[str, float]:
+    return {
+        "means": config.lr_means,
+        "quats": config.lr_rotations,
+        "log_scales": config.lr_scales,
+        "opacity_logits": config.lr_opacities,
+        "colors": config.lr_colors,
+    }
+
+
+def _prune(optimizer: torch.optim.Adam, keep: torch.Tensor) -> Gaussians:
+    """Drop Gaussians from the parameters and from Adam's moments alike."""
+    kept = {}
+    for group in optimizer.param_groups:
+        old = group["params"][0]
+        new = old.detach()[keep].requires_grad_(True)
+        state = optimizer.state.pop(old, None)
+        if state:
+            optimizer.state[new] = {k: v[keep] if k in ("exp_avg", "exp_avg_sq") else v for k, v in state.items()}
+        group["params"] = [new]
+        kept[group["name"]] = new
+    return Gaussians(**kept)
+
+
+def map_window(
+    gaussians: Gaussians,
+    views: list[Keyframe],
+    intrinsics: torch.Tensor,
+    renderer: Renderer,
+    config: MappingConfig,
+    weights: LossConfig,
+    scene_radius: float,
+    near: float,
+    far: float,
+    rng: random.Random,
+) -> Gaussians:
+    """`config.iters` Adam steps, each on one view drawn at random; pruning at `config.prune_at`.
+
+    -> the optimised Gaussians (detached).
+    """
+    params = as_leaves(gaussians)
+    rates = _learning_rates(config)
+    optimizer = torch.optim.Adam(
+        [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES], eps=1e-15
+    )
+    height, width = views[0].depth.shape
+    cameras = [Camera(torch.linalg.inv(v.c2w), intrinsics, width, height, near, far) for v in views]
+    for step in range(config.iters):
+        if step in config.prune_at:
+            with torch.no_grad():
+                keep = prune_mask(params, config.prune_opacity, config.prune_scale_factor * scene_radius)
+            params = _prune(optimizer, keep)
+        pick = rng.randrange(len(views))
+        out = renderer(params, cameras[pick])
+        loss = mapping_loss(out.color, out.depth, views[pick], config.ssim_weight, weights)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return Gaussians(*(getattr(params, n).detach() for n in PARAMETER_NAMES))

@@ -1,0 +1,197 @@
+"""SplaTAM, one frame at a time: track, densify, select keyframes, map."""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, field
+
+import torch
+
+from pipeline.config import Config
+from pipeline.frame import DeviceFrame
+from pipeline.geometry import constant_velocity
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.densify import densify_mask
+from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, detached, seed_gaussians
+from pipeline.slam.keyframes import Keyframe, select_window
+from pipeline.slam.mapping import map_window
+from pipeline.slam.timing import StageClock
+from pipeline.slam.tracking import track
+
+LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
+LOSS_HISTORY_MIN = 5
+
+
+@dataclass
+class FrameResult:
+    index: int
+    timestamp: float
+    c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the host
+    seconds: dict[str, float]  # tracking, densify (with keyframe selection), mapping, total
+    gaussians: int
+    added: int
+    tracking_loss: float  # per tracked pixel at the chosen pose
+    coverage: float  # fraction of valid-depth pixels used by tracking
+    lost: str = ""  # empty when tracking looked healthy, else why not
+
+
+@dataclass
+class SlamState:
+    """Everything needed to continue a run: what a checkpoint holds."""
+
+    gaussians: Gaussians | None = None
+    keyframes: list[Keyframe] = field(default_factory=list)
+    poses: list[torch.Tensor] = field(default_factory=list)  # estimated camera-to-world per frame
+    scene_radius: float = 0.0
+    loss_history: list[float] = field(default_factory=list)
+
+
+class SplaTAM:
+    def __init__(self, config: Config, renderer: Renderer, device: torch.device) -> None:
+        self.config = config
+        self.renderer = renderer
+        self.device = device
+        self.state = SlamState()
+        self.rng = random.Random(config.run.seed)
+        self.generator = torch.Generator().manual_seed(config.run.seed)
+        self.clock = StageClock(device)
+
+    @property
+    def frames_done(self) -> int:
+        return len(self.state.poses)
+
+    def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
+        """Process one frame (colour, depth and intrinsics on the device) and return its result."""
+        cfg, state = self.config, self.state
+        with self.clock.stage("total"):
+            if state.gaussians is None:
+                c2w = c2w_init = torch.eye(4, device=self.device)
+                loss, coverage = torch.zeros((), device=self.device), torch.ones((), device=self.device)
+                with self.clock.stage("densify"):
+                    added = self._initialise(frame, c2w)
+                window: list[Keyframe] = []
+            else:
+                with self.clock.stage("tracking"):
+                    c2w_init = self._initial_pose()
+                    tracked = track(
+                        detached(state.gaussians), frame, c2w_init, self.renderer, cfg.tracking, cfg.loss,
+                        cfg.render.near, cfg.render.far,
+                    )  # fmt: skip
+                    c2w, loss, coverage = tracked.c2w, tracked.best_loss, tracked.coverage
+                with self.clock.stage("densify"):
+                    added = self._densify(frame, c2w)
+                    window = [
+                        state.keyframes[i]
+                        for i in select_window(
+                            state.keyframes, frame.depth, frame.intrinsics, c2w, cfg.mapping.window,
+                            cfg.keyframes.overlap_samples, self.generator,
+                        )  # fmt: skip
+                    ]
+            current = Keyframe(frame.index, frame.color, frame.depth, c2w.detach())
+            with self.clock.stage("mapping"):
+                self._map(window + [current], frame.intrinsics)
+            if frame.index % cfg.keyframes.every == 0 or is_last:
+                state.keyframes.append(current)
+            state.poses.append(c2w.detach())
+        return self._result(frame, c2w, c2w_init, loss, coverage, self.clock.read(), added)
+
+    def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
+        """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""
+        valid = frame.depth > 0
+        self.state.gaussians = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, valid, self.config.gaussians)
+        self.state.scene_radius = float(frame.depth.max()) / self.config.mapping.scene_radius_divisor
+        return len(self.state.gaussians)
+
+    def _initial_pose(self) -> torch.Tensor:
+        poses = self.state.poses
+        return poses[-1] if len(poses) < 2 else constant_velocity(poses[-2], poses[-1])
+
+    def _densify(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
+        """Add Gaussians where the map at the tracked pose misses the frame; -> Gaussians added."""
+        state, render = self.state, self.config.render
+        assert state.gaussians is not None
+        camera = Camera(torch.linalg.inv(c2w), frame.intrinsics, frame.width, frame.height, render.near, render.far)
+        with torch.no_grad():
+            out = self.renderer(state.gaussians, camera)
+            mask = densify_mask(out.silhouette, out.depth, frame.depth, self.config.densify)
+            seeds = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, mask, self.config.gaussians)
+        state.gaussians = concatenate(state.gaussians, seeds)
+        return len(seeds)
+
+    def _map(self, views: list[Keyframe], intrinsics: torch.Tensor) -> None:
+        cfg, state = self.config, self.state
+        assert state.gaussians is not None
+        if cfg.mapping.iters == 0:
+            return
+        state.gaussians = map_window(
+            state.gaussians, views, intrinsics, self.renderer, cfg.mapping, cfg.loss, state.scene_radius,
+            cfg.render.near, cfg.render.far, self.rng,
+        )  # fmt: skip
+
+    def _result(
+        self,
+        frame: DeviceFrame,
+        c2w: torch.Tensor,
+        c2w_init: torch.Tensor,
+        loss: torch.Tensor,
+        coverage: torch.Tensor,
+        seconds: dict[str, float],
+        added: int,
+    ) -> FrameResult:
+        """Read the frame's device scalars once and judge whether tracking held."""
+        valid = float((frame.depth > 0).sum())
+        cov = float(coverage)
+        per_pixel = float(loss) / max(cov * valid, 1.0)
+        jump = float(torch.linalg.norm(c2w[:3, 3] - c2w_init[:3, 3]))
+        history = self.state.loss_history
+        lost = ""
+        if not math.isfinite(per_pixel) and self.frames_done > 1:
+            lost = "tracking loss is not finite"
+        elif jump > self.config.tracking.lost_translation_m:
+            lost = f"pose jumped {jump:.3f} m from its prediction"
+        elif self.frames_done > 1 and cov < self.config.tracking.lost_coverage:
+            lost = f"map covers only {cov:.0%} of the valid pixels"
+        elif len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]:
+            lost = f"tracking loss {per_pixel:.4f} per pixel is over {LOSS_EXPLOSION_FACTOR:g}x its running median"
+        if self.frames_done > 1 and math.isfinite(per_pixel):
+            history.append(per_pixel)
+        assert self.state.gaussians is not None
+        return FrameResult(
+            index=frame.index,
+            timestamp=frame.timestamp,
+            c2w=c2w.detach().cpu(),
+            seconds={k: seconds.get(k, 0.0) for k in ("tracking", "densify", "mapping", "total")},
+            gaussians=len(self.state.gaussians),
+            added=added,
+            tracking_loss=per_pixel,
+            coverage=cov,
+            lost=lost,
+        )
+
+    def state_dict(self) -> dict:
+        state = self.state
+        assert state.gaussians is not None
+        return {
+            "gaussians": {n: getattr(state.gaussians, n).cpu() for n in PARAMETER_NAMES},
+            "keyframes": [
+                {"index": k.index, "color": k.color.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()} for k in state.keyframes
+            ],
+            "poses": torch.stack(state.poses).cpu(),
+            "scene_radius": state.scene_radius,
+            "loss_history": list(state.loss_history),
+            "rng": self.rng.getstate(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, saved: dict) -> None:
+        dev = self.device
+        self.state = SlamState(
+            gaussians=Gaussians(**{n: saved["gaussians"][n].to(dev) for n in PARAMETER_NAMES}),
+            keyframes=[Keyframe(k["index"], k["color"].to(dev), k["depth"].to(dev), k["c2w"].to(dev)) for k in saved["keyframes"]],
+            poses=list(saved["poses"].to(dev)),
+            scene_radius=float(saved["scene_radius"]),
+            loss_history=list(saved["loss_history"]),
+        )
+        self.rng.setstate(saved["rng"])
+        self.generator.set_state(saved["generator"])

@@ -1,0 +1,41 @@
+"""Per-stage timing of a frame: CUDA events on the GPU, read only at the frame boundary."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+from torch.profiler import record_function
+
+
+class StageClock:
+    """Measures named stages; `read()` synchronises once and returns seconds per stage."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.cuda = device.type == "cuda"
+        self._spans: dict[str, tuple[object, object]] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        with record_function(name):
+            start = self._mark()
+            yield
+            self._spans[name] = (start, self._mark())
+
+    def _mark(self) -> object:
+        if self.cuda:
+            event = torch.cuda.Event(enable_timing=True)
+            event.record()
+            return event
+        return time.perf_counter()
+
+    def read(self) -> dict[str, float]:
+        if self.cuda:
+            torch.cuda.synchronize()
+            times = {name: start.elapsed_time(end) / 1000.0 for name, (start, end) in self._spans.items()}  # type: ignore[attr-defined]
+        else:
+            times = {name: end - start for name, (start, end) in self._spans.items()}  # type: ignore[operator]
+        self._spans.clear()
+        return times
