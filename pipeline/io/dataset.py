@@ -78,6 +78,11 @@ def read_intrinsics_file(folder: Path) -> np.ndarray | None:
     return intrinsics_matrix(*table[0])
 
 
+def write_intrinsics_file(folder: Path, intrinsics: np.ndarray) -> None:
+    fx, fy, cx, cy = (float(v) for v in (intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]))
+    (folder / INTRINSICS_FILE).write_text(f"{fx!r} {fy!r} {cx!r} {cy!r}\n")
+
+
 def relative_poses(c2w: np.ndarray) -> np.ndarray:
     """[N, 4, 4] camera-to-world -> the same relative to the first: inv(T_0) @ T_i."""
     return np.linalg.inv(c2w[0])[None] @ c2w

@@ -9,12 +9,12 @@ import numpy as np
 
 from pipeline.errors import DataError
 from pipeline.io.dataset import (
-    INTRINSICS_FILE,
     Dataset,
     FrameRef,
     intrinsics_matrix,
     read_intrinsics_file,
     relative_poses,
+    write_intrinsics_file,
 )
 from pipeline.io.images import write_color, write_depth_png
 from pipeline.io.trajectory import read_numeric_table
@@ -56,6 +56,5 @@ def write_replica(
         write_depth_png(results / f"depth{i:06d}.png", depth, DEPTH_SCALE)
         rows.append(" ".join(f"{v:.12e}" for v in np.asarray(c2w).reshape(-1)))
     (path / "traj.txt").write_text("\n".join(rows) + "\n")
-    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
-    (path / INTRINSICS_FILE).write_text(f"{fx!r} {fy!r} {cx!r} {cy!r}\n")
+    write_intrinsics_file(path, intrinsics)
     return len(rows)

@@ -16,6 +16,7 @@ from pipeline.io.dataset import (
     intrinsics_matrix,
     read_intrinsics_file,
     relative_poses,
+    write_intrinsics_file,
 )
 from pipeline.io.images import write_color, write_depth_png
 from pipeline.io.trajectory import matrix_to_quat_xyzw, pose_from_tum_row, read_numeric_table
@@ -153,8 +154,7 @@ def write_tum(
     (path / "rgb.txt").write_text(header + "\n".join(rgb_lines) + "\n")
     (path / "depth.txt").write_text(header + "\n".join(depth_lines) + "\n")
     (path / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(gt_lines) + "\n")
-    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
-    (path / INTRINSICS_FILE).write_text(f"{fx!r} {fy!r} {cx!r} {cy!r}\n")
+    write_intrinsics_file(path, intrinsics)
     return count
 
 

@@ -1,0 +1,140 @@
+"""The `gsplatam` command line (also `python -m pipeline`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import NoReturn
+
+from pipeline.errors import UserError
+from pipeline.stages.stage import StageFailure
+
+log = logging.getLogger("gsplatam")
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", help="tiny, small, base or tum (default: base on a GPU, tiny on the CPU)")
+    parser.add_argument("--config", metavar="FILE", help="TOML file of settings (applied after the preset)")
+    parser.add_argument(
+        "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
+        help="override one setting, e.g. --set tracking.iters=20 (repeatable)",
+    )  # fmt: skip
+    parser.add_argument("--output", metavar="DIR", help="where run folders go (default: outputs)")
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="compute device (default: auto)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="gsplatam", description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+
+    run = sub.add_parser("run", help="SLAM on a dataset (default: a generated synthetic room)")
+    run.add_argument("dataset", nargs="?", help="dataset folder, Replica or TUM layout (default: synthetic room)")
+    _add_config_options(run)
+    run.add_argument("--name", help="run folder name under --output")
+    run.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its checkpoint")
+    run.add_argument("--loader", choices=["pipelined", "sync"], help="asyncio pipeline (default) or a plain loop")
+    run.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
+
+    synth = sub.add_parser("synth", help="write a synthetic RGB-D sequence with exact poses")
+    synth.add_argument("out", help="output folder")
+    synth.add_argument("--layout", choices=["replica", "tum"], default="replica")
+    synth.add_argument("--frames", type=int, default=200)
+    synth.add_argument("--width", type=int, default=1200)
+    synth.add_argument("--height", type=int, default=680)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--speed", type=float, default=0.3, help="camera speed, m/s")
+    synth.add_argument("--jitter", type=float, default=0.01, help="hand-held shake, metres")
+    synth.add_argument("--fps", type=float, default=30.0)
+    synth.add_argument("--depth-noise", type=float, default=0.0, help="TUM only: depth noise std = k x depth^2")
+    synth.add_argument("--holes", type=float, default=0.0, help="TUM only: fraction of depth pixels zeroed")
+    synth.add_argument("--time-jitter", type=float, default=0.0, help="TUM only: depth/pose timestamp offsets, s")
+    synth.add_argument("--quiet", action="store_true")
+
+    bench = sub.add_parser("bench", help="throughput benchmarks (not built yet)")
+    bench.add_argument("rest", nargs=argparse.REMAINDER)
+    serve = sub.add_parser("serve", help="live daemon fed by Record3D or NeRFCapture (not built yet)")
+    serve.add_argument("rest", nargs=argparse.REMAINDER)
+    view = sub.add_parser("view", help="web viewer for a run folder or PLY (not built yet)")
+    view.add_argument("rest", nargs=argparse.REMAINDER)
+    return parser
+
+
+def _config_from(args: argparse.Namespace):
+    from pipeline.config import load_config, with_value
+    from pipeline.devices import default_preset, resolve_device
+
+    config_file = args.config
+    if getattr(args, "resume", None):
+        config_file = config_file or str(Path(args.resume) / "config.toml")
+        if not Path(config_file).exists():
+            raise UserError(f"no config.toml in {args.resume}: is it a run folder?")
+    preset = args.preset or default_preset(resolve_device(args.device or "auto"))
+    config = load_config(preset, config_file, args.overrides)
+    if getattr(args, "dataset", None):
+        config = with_value(config, "dataset.path", args.dataset)
+    for key, value in (("run.output", args.output), ("run.device", args.device), ("run.name", getattr(args, "name", None)), ("run.loader", getattr(args, "loader", None))):
+        if value:
+            config = with_value(config, key, value)
+    return config
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from pipeline.run import format_table, run_slam
+
+    config = _config_from(args)
+    if not config.dataset.path:
+        log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
+    result = run_slam(config, resume=Path(args.resume) if args.resume else None, profile_trace=args.profile, progress=not args.quiet)
+    print(format_table(result.metrics))
+    print(f"outputs: {result.folder.path}/ (metrics.json, frames.csv, trajectory.txt, map.ply, checkpoint.pt)")
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from pipeline.config import SyntheticConfig
+    from pipeline.io.synth_writer import write_synthetic
+
+    config = SyntheticConfig(
+        frames=args.frames, width=args.width, height=args.height, seed=args.seed, speed=args.speed, jitter=args.jitter, fps=args.fps
+    )
+    count = write_synthetic(Path(args.out), config, args.layout, args.depth_noise, args.holes, args.time_jitter, not args.quiet)
+    print(f"wrote {count} frames ({args.width}x{args.height}, {args.layout} layout) to {args.out}")
+    return 0
+
+
+def cmd_not_built(args: argparse.Namespace) -> int:
+    raise UserError(f"'{args.command}' is not built yet in this version")
+
+
+COMMANDS = {"run": cmd_run, "synth": cmd_synth, "bench": cmd_not_built, "serve": cmd_not_built, "view": cmd_not_built}
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except UserError as exc:
+        print(f"gsplatam: error: {exc}", file=sys.stderr)
+        return 2
+    except StageFailure as exc:
+        if not isinstance(exc.cause, UserError):
+            raise
+        print(f"gsplatam: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("gsplatam: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,45 @@
+"""Choosing the compute device and the sizes that suit it."""
+
+from __future__ import annotations
+
+import torch
+
+from pipeline.config import Config, SyntheticConfig
+from pipeline.errors import UserError
+
+# The embedded default scene: full Replica size on a GPU, a small one a 2-core CPU finishes in minutes.
+SYNTHETIC_GPU = (1200, 680, 200)
+SYNTHETIC_CPU = (128, 96, 20)
+DEFAULT_PRESET_CPU = "tiny"
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise UserError("run.device=cuda but no CUDA device is available")
+    return torch.device(name)
+
+
+def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticConfig:
+    """Fill the sizes left at 0 for `device`."""
+    width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
+    return SyntheticConfig(
+        frames=config.frames or frames,
+        width=config.width or width,
+        height=config.height or height,
+        seed=config.seed,
+        speed=config.speed,
+        jitter=config.jitter,
+        fps=config.fps,
+    )
+
+
+def default_preset(device: torch.device) -> str:
+    return "base" if device.type == "cuda" else DEFAULT_PRESET_CPU
+
+
+def describe(device: torch.device, config: Config) -> str:
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)} (torch {torch.__version__}, CUDA {torch.version.cuda})"
+    return f"CPU, {torch.get_num_threads()} threads (torch {torch.__version__}), renderer {config.render.backend}"

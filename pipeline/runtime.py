@@ -1,0 +1,188 @@
+"""The asyncio runtime: wires source -> decode -> upload -> SLAM -> sinks with bounded queues.
+
+Decoding, uploading and SLAM each run in their own worker threads, so the event loop only
+moves items between queues; while SLAM works on frame i, frames i+1.. are being read,
+decoded and copied to the GPU. `run_sync` is the plain loop kept for comparison.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import threading
+import time
+from collections.abc import AsyncIterable, Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline.frame import Frame
+from pipeline.stages.queues import END, Policy, StageQueue
+from pipeline.stages.sinks import ResultSink
+from pipeline.stages.slam import SlamStep
+from pipeline.stages.stage import StageFailure, StageStats, transform_stage
+from pipeline.stages.upload import UploadedFrame
+
+try:
+    import uvloop
+except ImportError:  # pragma: no cover - uvloop is a dependency, but optional on Windows
+    uvloop = None
+
+
+@dataclass
+class RuntimeReport:
+    loader: str
+    frames: int
+    wall_s: float
+    interrupted: bool
+    stages: dict[str, dict[str, float]] = field(default_factory=dict)
+    queues: dict[str, dict[str, int]] = field(default_factory=dict)
+    gpu_gaps_ms: list[float] = field(default_factory=list)
+    gpu_busy_fraction: float | None = None  # frame spans on the compute stream / their wall time
+
+    def summary(self) -> dict[str, Any]:
+        gaps = sorted(self.gpu_gaps_ms)
+        return {
+            "loader": self.loader,
+            "frames": self.frames,
+            "wall_s": self.wall_s,
+            "fps": self.frames / self.wall_s if self.wall_s > 0 else 0.0,
+            "interrupted": self.interrupted,
+            "stages": self.stages,
+            "queues": self.queues,
+            "gpu_busy_fraction": self.gpu_busy_fraction,
+            "gpu_gap_ms": {
+                "mean": sum(gaps) / len(gaps) if gaps else None,
+                "p95": gaps[int(0.95 * (len(gaps) - 1))] if gaps else None,
+                "max": gaps[-1] if gaps else None,
+                "over_1ms": sum(g > 1.0 for g in gaps),
+            },
+        }
+
+
+@dataclass
+class Graph:
+    """What the runtime needs: a source, the per-item functions and the sink."""
+
+    source: AsyncIterable[Any]
+    source_policy: Policy
+    decode: Callable[[Any], Frame]
+    upload: Callable[[Frame], UploadedFrame]
+    slam: SlamStep
+    sink: ResultSink
+    queue_size: int = 4
+    decode_workers: int = 2
+
+
+def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
+    report = RuntimeReport(loader, len(graph.sink.results), wall, interrupted)
+    report.stages = {s.name: s.summary() for s in stats}
+    report.gpu_gaps_ms = graph.slam.gpu_gaps_ms()
+    wall_ms = graph.slam.gpu_wall_ms()
+    if wall_ms > 0:
+        report.gpu_busy_fraction = graph.slam.gpu_busy_ms() / wall_ms
+    return report
+
+
+async def _feed(source: AsyncIterable[Any], outbox: StageQueue[Any], stop: asyncio.Event) -> None:
+    try:
+        async for item in source:
+            if stop.is_set():
+                break
+            await outbox.put(item)
+    except Exception as exc:
+        raise StageFailure("source", None, exc) from exc
+    await outbox.put(END)
+
+
+async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
+    """Run the pipelined graph to the end of the source, or until `stop` is set (then the
+    frame in SLAM finishes and the rest is left). A failing stage stops everything and its
+    StageFailure is raised."""
+    q = graph.queue_size
+    refs: StageQueue[Any] = StageQueue(q, graph.source_policy)
+    frames: StageQueue[Any] = StageQueue(q)
+    uploaded: StageQueue[Any] = StageQueue(q)
+    results: StageQueue[Any] = StageQueue(4 * q)
+    stats = [StageStats("decode"), StageStats("upload"), StageStats("slam")]
+    pools = [
+        ThreadPoolExecutor(graph.decode_workers, thread_name_prefix="decode"),
+        ThreadPoolExecutor(1, thread_name_prefix="upload"),
+        ThreadPoolExecutor(1, thread_name_prefix="slam"),
+    ]
+    start = time.perf_counter()
+    try:
+        async with asyncio.TaskGroup() as group:
+            upstream = [
+                group.create_task(_feed(graph.source, refs, stop)),
+                group.create_task(transform_stage("decode", graph.decode, refs, frames, pools[0], stats[0])),
+                group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
+            ]
+            slam = group.create_task(transform_stage("slam", graph.slam, uploaded, results, pools[2], stats[2], stop))
+            group.create_task(graph.sink.drain(results))
+            await slam
+            for task in upstream:
+                task.cancel()
+    except* StageFailure as failures:
+        raise failures.exceptions[0] from None
+    finally:
+        for pool in pools:
+            pool.shutdown(wait=True, cancel_futures=True)
+    wall = time.perf_counter() - start
+    report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
+    report.queues = {
+        name: {"max_depth": queue.max_depth, "dropped": queue.dropped}
+        for name, queue in (("source", refs), ("decoded", frames), ("uploaded", uploaded), ("results", results))
+    }
+    return report
+
+
+async def _collect(source: AsyncIterable[Any]) -> list[Any]:
+    return [item async for item in source]
+
+
+def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
+    """The plain loop: read, decode, copy, track and map one frame after the other."""
+    stats = {name: StageStats(name) for name in ("decode", "upload", "slam")}
+    items = asyncio.run(_collect(graph.source))
+    start = time.perf_counter()
+    for item in items:
+        if stop.is_set():
+            break
+        value: Any = item
+        for name, fn in (("decode", graph.decode), ("upload", graph.upload), ("slam", graph.slam)):
+            t0 = time.perf_counter()
+            try:
+                value = fn(value)
+            except Exception as exc:
+                raise StageFailure(name, getattr(item, "index", None), exc) from exc
+            stats[name].record(time.perf_counter() - t0)
+        graph.sink.consume(value)
+    return _finish_report(graph, "sync", time.perf_counter() - start, stop.is_set(), list(stats.values()))
+
+
+def execute(graph: Graph, loader: str) -> RuntimeReport:
+    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly."""
+    if loader == "sync":
+        stop = threading.Event()
+        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            return run_sync(graph, stop)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+    async def main() -> RuntimeReport:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        try:
+            return await run_graph(graph, stop)
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+
+    if uvloop is not None:
+        return uvloop.run(main())
+    return asyncio.run(main())

@@ -1,0 +1,55 @@
+"""The SLAM stage: one SplaTAM step per frame on the compute stream, with GPU gap timing."""
+
+from __future__ import annotations
+
+import torch
+from torch.profiler import record_function
+
+from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.stages.upload import UploadedFrame
+
+
+class SlamStep:
+    """Callable run in the SLAM worker thread. On CUDA it brackets every frame with events on
+    the compute stream, so the idle time between one frame's GPU work and the next is measured
+    on the GPU's own clock."""
+
+    def __init__(self, slam: SplaTAM, last_index: int | None) -> None:
+        self.slam = slam
+        self.last_index = last_index
+        self.cuda = slam.device.type == "cuda"
+        self._events: list[tuple[torch.cuda.Event, torch.cuda.Event]] = []
+
+    def __call__(self, uploaded: UploadedFrame) -> FrameResult:
+        with record_function("slam_step"):
+            if self.cuda:
+                torch.cuda.set_device(self.slam.device)
+                start = torch.cuda.Event(enable_timing=True)
+                start.record()
+            frame = uploaded.wait()
+            result = self.slam.step(frame, is_last=frame.index == self.last_index)
+            if self.cuda:
+                end = torch.cuda.Event(enable_timing=True)
+                end.record()
+                self._events.append((start, end))
+        return result
+
+    def gpu_gaps_ms(self) -> list[float]:
+        """Idle time on the compute stream between consecutive frames, milliseconds."""
+        if not self._events:
+            return []
+        torch.cuda.synchronize()
+        return [prev_end.elapsed_time(start) for (_, prev_end), (start, _) in zip(self._events, self._events[1:])]
+
+    def gpu_busy_ms(self) -> float:
+        """Sum of the spans from each frame's start event to its end event."""
+        if not self._events:
+            return 0.0
+        torch.cuda.synchronize()
+        return sum(start.elapsed_time(end) for start, end in self._events)
+
+    def gpu_wall_ms(self) -> float:
+        if not self._events:
+            return 0.0
+        torch.cuda.synchronize()
+        return self._events[0][0].elapsed_time(self._events[-1][1])

@@ -1,0 +1,80 @@
+"""The stage contract: read a bounded queue until END, transform in an executor, write the next queue.
+
+Every stage keeps its own statistics and names itself and its frame when it fails.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline.stages.queues import END, EndOfStream, StageQueue
+
+
+class StageFailure(Exception):
+    """A stage raised: names the stage and the frame it was working on."""
+
+    def __init__(self, stage: str, frame: int | None, cause: BaseException) -> None:
+        where = f" on frame {frame}" if frame is not None else ""
+        super().__init__(f"stage '{stage}' failed{where}: {cause}")
+        self.stage, self.frame, self.cause = stage, frame, cause
+
+
+@dataclass
+class StageStats:
+    name: str
+    items: int = 0
+    busy_s: float = 0.0
+    latencies_s: list[float] = field(default_factory=list)
+
+    def record(self, seconds: float) -> None:
+        self.items += 1
+        self.busy_s += seconds
+        self.latencies_s.append(seconds)
+
+    def summary(self) -> dict[str, float]:
+        lat = sorted(self.latencies_s)
+        return {
+            "items": self.items,
+            "busy_s": self.busy_s,
+            "mean_ms": 1000 * self.busy_s / max(self.items, 1),
+            "p95_ms": 1000 * lat[int(0.95 * (len(lat) - 1))] if lat else 0.0,
+            "max_ms": 1000 * lat[-1] if lat else 0.0,
+        }
+
+
+def frame_index(item: Any) -> int | None:
+    for holder in (item, getattr(item, "frame", None)):
+        index = getattr(holder, "index", None)
+        if isinstance(index, int):
+            return index
+    return None
+
+
+async def transform_stage(
+    name: str,
+    fn: Callable[[Any], Any],
+    inbox: StageQueue[Any],
+    outbox: StageQueue[Any],
+    executor: Executor,
+    stats: StageStats,
+    stop: asyncio.Event | None = None,
+) -> None:
+    """Apply `fn` to every item in order, off the event loop. With `stop`, end after the
+    item in hand once it is set (the current frame finishes, queued ones are left)."""
+    loop = asyncio.get_running_loop()
+    while not isinstance(item := await inbox.get(), EndOfStream):
+        start = time.perf_counter()
+        try:
+            result = await loop.run_in_executor(executor, fn, item)
+        except Exception as exc:
+            raise StageFailure(name, frame_index(item), exc) from exc
+        stats.record(time.perf_counter() - start)
+        await outbox.put(result)
+        if stop is not None and stop.is_set():
+            break
+    await outbox.put(END)
