@@ -10,6 +10,7 @@ It runs on any device and is the oracle for the CUDA backend.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -17,14 +18,26 @@ from pipeline.geometry import quat_to_rotmat
 from pipeline.render.types import Camera, Gaussians, RenderOutput
 
 TILE = 16
-ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
-T_MIN = 1e-4
-EXTENT_SIGMAS = 3.33
 CHUNK_ELEMENTS = 1 << 22  # tile x pixel x Gaussian elements per compositing chunk
 
 
-def project(gaussians: Gaussians, camera: Camera, eps2d: float) -> dict[str, torch.Tensor]:
+@dataclass(frozen=True)
+class Cutoffs:
+    """gsplat's thresholds. They make the image a discontinuous function of the parameters
+    (a pixel's alpha jumps from 0 to 1/255), which autograd ignores; `SMOOTH` removes them,
+    so finite differences can check the gradient of the continuous part."""
+
+    alpha_min: float = 1.0 / 255.0
+    transmittance_min: float = 1e-4
+    extent_sigmas: float = 3.33
+
+
+GSPLAT = Cutoffs()
+SMOOTH = Cutoffs(alpha_min=1e-30, transmittance_min=0.0, extent_sigmas=12.0)
+
+
+def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs = GSPLAT) -> dict[str, torch.Tensor]:
     """EWA projection of every Gaussian: 2D means, conics, depths, opacities and radii [N, 2]."""
     rot_w, t_w = camera.w2c[:3, :3], camera.w2c[:3, 3]
     means_c = gaussians.means @ rot_w.T + t_w
@@ -50,10 +63,11 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float) -> dict[str, tor
     opacities = torch.sigmoid(gaussians.opacity_logits)
 
     with torch.no_grad():
-        extent = torch.clamp(torch.sqrt(2.0 * torch.log(opacities.clamp(min=ALPHA_MIN) / ALPHA_MIN)), max=EXTENT_SIGMAS)
+        alpha_min = cutoffs.alpha_min
+        extent = torch.clamp(torch.sqrt(2.0 * torch.log(opacities.clamp(min=alpha_min) / alpha_min)), max=cutoffs.extent_sigmas)
         var = torch.stack([cov2d[:, 0, 0], cov2d[:, 1, 1]], -1).clamp(min=0)
         radii = torch.ceil(extent[:, None] * torch.sqrt(var))
-        valid = (z >= camera.near) & (z <= camera.far) & (det > 0) & (opacities >= ALPHA_MIN)
+        valid = (z >= camera.near) & (z <= camera.far) & (det > 0) & (opacities >= alpha_min)
         valid &= (radii > 0).any(-1)
         valid &= (means2d[:, 0] + radii[:, 0] > 0) & (means2d[:, 0] - radii[:, 0] < camera.width)
         valid &= (means2d[:, 1] + radii[:, 1] > 0) & (means2d[:, 1] - radii[:, 1] < camera.height)
@@ -91,7 +105,12 @@ def tile_lists(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor,
 
 
 def composite(
-    proj: dict[str, torch.Tensor], features: torch.Tensor, lists: torch.Tensor, width: int, height: int
+    proj: dict[str, torch.Tensor],
+    features: torch.Tensor,
+    lists: torch.Tensor,
+    width: int,
+    height: int,
+    cutoffs: Cutoffs = GSPLAT,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Front-to-back alpha compositing per tile -> (features [H, W, C], alpha [H, W])."""
     device = features.device
@@ -113,10 +132,10 @@ def composite(
         dy = mean[:, None, :, 1] - pix[:, :, None, 1]
         power = 0.5 * (conic[:, None, :, 0] * dx * dx + conic[:, None, :, 2] * dy * dy) + conic[:, None, :, 1] * dx * dy
         alpha = torch.clamp(proj["opacities"][safe][:, None, :] * torch.exp(-power), max=ALPHA_MAX)
-        used = (ids >= 0)[:, None, :] & (power >= 0) & (alpha >= ALPHA_MIN)
+        used = (ids >= 0)[:, None, :] & (power >= 0) & (alpha >= cutoffs.alpha_min)
         alpha = torch.where(used, alpha, torch.zeros_like(alpha))
         transmit = torch.cumprod(1 - alpha, dim=-1)  # after each Gaussian
-        alpha = torch.where(transmit > T_MIN, alpha, torch.zeros_like(alpha))  # stop rule, exclusive
+        alpha = torch.where(transmit > cutoffs.transmittance_min, alpha, torch.zeros_like(alpha))  # stop rule, exclusive
         before = torch.cat([torch.ones_like(transmit[..., :1]), transmit[..., :-1]], -1)
         weight = alpha * before  # [c, P, K]
         out_f.append(weight @ features[safe])  # [c, P, C]
@@ -129,11 +148,11 @@ def composite(
     return feat[:height, :width], acc[:height, :width]
 
 
-def render_reference(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3) -> RenderOutput:
-    proj = project(gaussians, camera, eps2d)
+def render_reference(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, cutoffs: Cutoffs = GSPLAT) -> RenderOutput:
+    proj = project(gaussians, camera, eps2d, cutoffs)
     lists = tile_lists(proj["means2d"], proj["radii"], proj["depths"], camera.width, camera.height)
     features = torch.cat([gaussians.colors, proj["depths"][:, None]], -1)
-    feat, alpha = composite(proj, features, lists, camera.width, camera.height)
+    feat, alpha = composite(proj, features, lists, camera.width, camera.height, cutoffs)
     depth = feat[..., 3] / alpha.clamp(min=1e-10)
     radii = proj["radii"].amax(-1)
     return RenderOutput(feat[..., :3], depth, alpha, radii, radii > 0)
