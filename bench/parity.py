@@ -27,6 +27,7 @@ from pipeline.run import versions  # noqa: E402
 # images; gradients pass through sums over many pixels and get 1e-3. The finite-difference check
 # of the smooth reference runs in float64: 1e-4.
 TOLERANCE = {"image": 1e-4, "grad": 1e-3, "fd": 1e-4}
+SMOOTH_FD_GAUSSIANS = 2_000
 
 
 def random_pose(generator: torch.Generator, device: torch.device) -> torch.Tensor:
@@ -121,15 +122,21 @@ def compare_case(n: int, isotropic: bool, seed: int, width: int, height: int, de
     }
     for key in grads["gsplat"]:
         case[f"grad_{key}"] = rel(grads["gsplat"][key], grads["reference"][key])
+    if isotropic:
+        # A sphere's image does not depend on its rotation: both backends return rounding noise
+        # for these gradients, so their relative difference means nothing and is not judged.
+        case["grad_quats_norm"] = float(torch.linalg.norm(grads["reference"]["quats"]))
+        case["grad_quats"] = 0.0
 
-    case["viewmat_fd_smooth"] = viewmat_fd_error(scene, w2c, k, width, height, weights, gen, smooth=True)
-    case["viewmat_fd_gsplat_raw"] = viewmat_fd_error(scene, w2c, k, width, height, weights, gen, smooth=False)
+    case["viewmat_fd_smooth"] = viewmat_fd_error(scene, w2c, k, width, height, weights, smooth=True)
+    case["viewmat_fd_gsplat_raw"] = viewmat_fd_error(scene, w2c, k, width, height, weights, smooth=False)
     return case
 
 
-def viewmat_fd_error(scene, w2c, k, width, height, weights, gen, smooth: bool) -> float:
-    """Largest relative error of the view-matrix gradient along 3 random twists, against
-    central finite differences.
+def viewmat_fd_error(scene, w2c, k, width, height, weights, smooth: bool) -> float:
+    """Relative L2 error of the loss's derivative along the six rigid-motion generators
+    (three rotations, three translations) of the camera: analytic (through the view-matrix
+    gradient) against central finite differences.
 
     smooth=True: the reference renderer without gsplat's cutoffs, in float64 (a continuous
     function, so the check is exact up to rounding). smooth=False: gsplat itself in float32;
@@ -139,8 +146,14 @@ def viewmat_fd_error(scene, w2c, k, width, height, weights, gen, smooth: bool) -
     from pipeline.render.gsplat_backend import render_gsplat_3d
 
     if smooth:
+        # A subset keeps the 12-sigma footprints affordable; opacities stay under 0.98 so no
+        # pixel reaches the 0.999 alpha clamp, a kink that finite differences would straddle.
         dtype, eps = torch.float64, 1e-5
-        scene = Gaussians(*(t.double() for t in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits, scene.colors)))
+        head = slice(0, SMOOTH_FD_GAUSSIANS)
+        scene = Gaussians(
+            scene.means[head].double(), scene.quats[head].double(), scene.log_scales[head].double(),
+            scene.opacity_logits[head].clamp(max=4.0).double(), scene.colors[head].double(),
+        )  # fmt: skip
 
         def render(g, cam):
             return render_reference(g, cam, cutoffs=SMOOTH)
@@ -151,18 +164,17 @@ def viewmat_fd_error(scene, w2c, k, width, height, weights, gen, smooth: bool) -
     weights = tuple(w.to(dtype) for w in weights)
     view = w2c.clone().requires_grad_(True)
     loss_of(render(scene, Camera(view, k, width, height)), weights).backward()
-    errors = []
-    for _ in range(3):
-        xi = torch.randn(6, generator=gen, dtype=torch.float64)
-        xi = (xi / torch.linalg.norm(xi)).to(w2c.device, dtype)
+    numeric, analytic = [], []
+    for axis in range(6):
+        xi = torch.zeros(6, dtype=dtype, device=w2c.device)
+        xi[axis] = 1.0
         with torch.no_grad():
             plus = loss_of(render(scene, Camera(twist(w2c, eps * xi), k, width, height)), weights)
             minus = loss_of(render(scene, Camera(twist(w2c, -eps * xi), k, width, height)), weights)
-        numeric = float((plus - minus) / (2 * eps))
+        numeric.append(float((plus - minus) / (2 * eps)))
         direction = (twist(w2c.double(), 1e-7 * xi.double()) - w2c.double()) / 1e-7  # d w2c / dt along xi
-        analytic = float((view.grad.double()[:3] * direction[:3]).sum())
-        errors.append(abs(analytic - numeric) / max(abs(numeric), 1e-9))
-    return max(errors)
+        analytic.append(float((view.grad.double()[:3] * direction[:3]).sum()))
+    return rel(torch.tensor(analytic), torch.tensor(numeric))
 
 
 def time_ms(fn, repeats: int = 15) -> float:
@@ -220,6 +232,7 @@ def main() -> None:
             for _ in range(2):
                 seed += 1
                 cases.append(compare_case(n, isotropic, seed, width, height, device))
+                torch.cuda.empty_cache()
                 print({k: (f"{v:.2e}" if isinstance(v, float) else v) for k, v in cases[-1].items()}, flush=True)
     keys = ["color", "depth", "silhouette"] + [f"grad_{k}" for k in ("means", "colors", "opacities", "scales", "quats", "viewmat")]
     worst = {key: max(c[key] for c in cases) for key in keys + ["viewmat_fd_smooth", "viewmat_fd_gsplat_raw"]}

@@ -15,9 +15,11 @@ DEFAULT_PRESET_CPU = "tiny"
 
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise UserError("run.device=cuda but no CUDA device is available")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise UserError("run.device=cuda but no CUDA device is available")
+        return torch.device("cuda", torch.cuda.current_device())
     return torch.device(name)
 
 

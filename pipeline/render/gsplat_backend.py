@@ -57,13 +57,17 @@ def render_gsplat_3d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, p
 
 
 def render_gsplat_2d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, packed: bool = False) -> RenderOutput:
-    """2D Gaussian surfels (2DGS): the third scale axis is ignored by the rasteriser."""
+    """2D Gaussian surfels (2DGS): the third scale axis is ignored by the rasteriser.
+
+    Colours go in per camera ([1, N, 3]): gsplat 1.5.3's 2DGS path cannot append the depth
+    channel to unbatched [N, 3] colours.
+    """
     colors, alphas, *_, meta = gsplat.rasterization_2dgs(
         means=gaussians.means,
         quats=gaussians.quats,
         scales=gaussians.scales(),
         opacities=torch.sigmoid(gaussians.opacity_logits),
-        colors=gaussians.colors,
+        colors=gaussians.colors[None],
         viewmats=camera.w2c[None],
         Ks=camera.intrinsics[None],
         width=camera.width,
