@@ -39,13 +39,17 @@ def random_pose(generator: torch.Generator, device: torch.device) -> torch.Tenso
     return c2w.to(device)
 
 
-def random_scene(n: int, isotropic: bool, c2w: torch.Tensor, k: torch.Tensor, width: int, height: int, generator: torch.Generator) -> Gaussians:
+def random_scene(
+    n: int, isotropic: bool, c2w: torch.Tensor, k: torch.Tensor, width: int, height: int, generator: torch.Generator
+) -> Gaussians:
     """n Gaussians inside the camera's view (depth 1 to 6 m), sizes from sub-pixel to ~20 px."""
     device = c2w.device
     u = torch.rand(n, generator=generator) * width * 1.2 - 0.1 * width
     v = torch.rand(n, generator=generator) * height * 1.2 - 0.1 * height
     z = 1 + 5 * torch.rand(n, generator=generator)
-    cam = torch.stack([(u - k[0, 2].cpu()) / k[0, 0].cpu() * z, (v - k[1, 2].cpu()) / k[1, 1].cpu() * z, z], -1).to(device)
+    cam = torch.stack([(u - k[0, 2].cpu()) / k[0, 0].cpu() * z, (v - k[1, 2].cpu()) / k[1, 1].cpu() * z, z], -1).to(
+        device
+    )
     means = cam @ c2w[:3, :3].T + c2w[:3, 3]
     pixels = 0.3 + 20 * torch.rand(n, 1 if isotropic else 3, generator=generator) ** 2
     log_scales = torch.log(pixels.to(device) * z[:, None].to(device) / k[0, 0])
@@ -59,7 +63,9 @@ def random_scene(n: int, isotropic: bool, c2w: torch.Tensor, k: torch.Tensor, wi
 
 
 def leaves(g: Gaussians) -> Gaussians:
-    return Gaussians(*(t.detach().clone().requires_grad_(True) for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.colors)))
+    return Gaussians(
+        *(t.detach().clone().requires_grad_(True) for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.colors))
+    )
 
 
 def loss_of(out, weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -80,7 +86,11 @@ def twist(w2c: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -omega[2], omega[1], omega[2], -omega[0], -omega[1], omega[0]
     rot = torch.eye(3, dtype=w2c.dtype, device=w2c.device) + k
     if angle > 0:
-        rot = torch.eye(3, dtype=w2c.dtype, device=w2c.device) + math.sin(angle) / angle * k + (1 - math.cos(angle)) / angle**2 * (k @ k)
+        rot = (
+            torch.eye(3, dtype=w2c.dtype, device=w2c.device)
+            + math.sin(angle) / angle * k
+            + (1 - math.cos(angle)) / angle**2 * (k @ k)
+        )
     delta = torch.eye(4, dtype=w2c.dtype, device=w2c.device)
     delta[:3, :3], delta[:3, 3] = rot, t
     return delta @ w2c
@@ -94,7 +104,9 @@ def compare_case(n: int, isotropic: bool, seed: int, width: int, height: int, de
     c2w = random_pose(gen, device)
     w2c = invert_pose(c2w)
     scene = random_scene(n, isotropic, c2w, k, width, height, gen)
-    weights = tuple(torch.rand(*shape, generator=gen).to(device) for shape in ((height, width, 3), (height, width), (height, width)))
+    weights = tuple(
+        torch.rand(*shape, generator=gen).to(device) for shape in ((height, width, 3), (height, width), (height, width))
+    )
 
     results = {}
     grads = {}
@@ -209,7 +221,7 @@ def timings(device: torch.device) -> list[dict]:
                 g = leaves(scene)
                 view = torch.eye(4, device=device).requires_grad_(True)
 
-                def step() -> None:
+                def step(fn=fn, g=g, view=view, k=k, packed=packed) -> None:
                     out = fn(g, Camera(view, k, width, height), packed=packed)
                     (out.color.sum() + out.depth.sum() + out.silhouette.sum()).backward()
 
@@ -234,7 +246,9 @@ def main() -> None:
                 cases.append(compare_case(n, isotropic, seed, width, height, device))
                 torch.cuda.empty_cache()
                 print({k: (f"{v:.2e}" if isinstance(v, float) else v) for k, v in cases[-1].items()}, flush=True)
-    keys = ["color", "depth", "silhouette"] + [f"grad_{k}" for k in ("means", "colors", "opacities", "scales", "quats", "viewmat")]
+    keys = ["color", "depth", "silhouette"] + [
+        f"grad_{k}" for k in ("means", "colors", "opacities", "scales", "quats", "viewmat")
+    ]
     worst = {key: max(c[key] for c in cases) for key in keys + ["viewmat_fd_smooth", "viewmat_fd_gsplat_raw"]}
     passed = all(worst[k] <= TOLERANCE["image"] for k in keys[:3])
     passed &= all(worst[k] <= TOLERANCE["grad"] for k in keys[3:])

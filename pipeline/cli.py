@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import NoReturn
 
@@ -81,7 +80,12 @@ def _config_from(args: argparse.Namespace):
     config = load_config(preset, config_file, args.overrides)
     if getattr(args, "dataset", None):
         config = with_value(config, "dataset.path", args.dataset)
-    for key, value in (("run.output", args.output), ("run.device", args.device), ("run.name", getattr(args, "name", None)), ("run.loader", getattr(args, "loader", None))):
+    for key, value in (
+        ("run.output", args.output),
+        ("run.device", args.device),
+        ("run.name", getattr(args, "name", None)),
+        ("run.loader", getattr(args, "loader", None)),
+    ):
         if value:
             config = with_value(config, key, value)
     return config
@@ -93,7 +97,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = _config_from(args)
     if not config.dataset.path:
         log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
-    result = run_slam(config, resume=Path(args.resume) if args.resume else None, profile_trace=args.profile, progress=not args.quiet)
+    result = run_slam(
+        config, resume=Path(args.resume) if args.resume else None, profile_trace=args.profile, progress=not args.quiet
+    )
     print(format_table(result.metrics))
     print(f"outputs: {result.folder.path}/ (metrics.json, frames.csv, trajectory.txt, map.ply, checkpoint.pt)")
     return 0
@@ -104,9 +110,17 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from pipeline.io.synth_writer import write_synthetic
 
     config = SyntheticConfig(
-        frames=args.frames, width=args.width, height=args.height, seed=args.seed, speed=args.speed, jitter=args.jitter, fps=args.fps
+        frames=args.frames,
+        width=args.width,
+        height=args.height,
+        seed=args.seed,
+        speed=args.speed,
+        jitter=args.jitter,
+        fps=args.fps,
     )
-    count = write_synthetic(Path(args.out), config, args.layout, args.depth_noise, args.holes, args.time_jitter, not args.quiet)
+    count = write_synthetic(
+        Path(args.out), config, args.layout, args.depth_noise, args.holes, args.time_jitter, not args.quiet
+    )
     print(f"wrote {count} frames ({args.width}x{args.height}, {args.layout} layout) to {args.out}")
     return 0
 

@@ -72,7 +72,9 @@ def pixel_grid(height: int, width: int, device: torch.device) -> tuple[torch.Ten
     return u, v
 
 
-def backproject(u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor, intrinsics: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+def backproject(
+    u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor, intrinsics: torch.Tensor, c2w: torch.Tensor
+) -> torch.Tensor:
     """Pixel centres [M] with depth [M] metres -> world points [M, 3]."""
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     cam = torch.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], dim=-1)
@@ -85,7 +87,10 @@ def project(points: torch.Tensor, w2c: torch.Tensor, intrinsics: torch.Tensor) -
     z = cam[..., 2]
     safe = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
     uv = torch.stack(
-        [intrinsics[0, 0] * cam[..., 0] / safe + intrinsics[0, 2], intrinsics[1, 1] * cam[..., 1] / safe + intrinsics[1, 2]],
+        [
+            intrinsics[0, 0] * cam[..., 0] / safe + intrinsics[0, 2],
+            intrinsics[1, 1] * cam[..., 1] / safe + intrinsics[1, 2],
+        ],
         dim=-1,
     )
     return uv, z

@@ -70,7 +70,9 @@ def run_slam(
     device = resolve_device(config.run.device)
     output = Path(config.run.output)
     dataset, config = prepare_dataset(config, device, output, progress)
-    folder = RunFolder(resume if resume is not None else output / (config.run.name or f"{dataset.name}_{config.preset}"))
+    folder = RunFolder(
+        resume if resume is not None else output / (config.run.name or f"{dataset.name}_{config.preset}")
+    )
     backend = resolve_backend(config.render, device)
     config = replace(config, render=replace(config.render, backend=backend))
     folder.write_config(config)
@@ -107,7 +109,9 @@ def run_slam(
     return RunResult(folder, metrics)
 
 
-def _execute(graph: Graph, config: Config, folder: RunFolder, profile_trace: bool, device: torch.device) -> RuntimeReport:
+def _execute(
+    graph: Graph, config: Config, folder: RunFolder, profile_trace: bool, device: torch.device
+) -> RuntimeReport:
     if not profile_trace:
         return execute(graph, config.run.loader)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
@@ -187,7 +191,10 @@ def _finish(
 
 def _timing(results: list[FrameResult], report: RuntimeReport) -> dict[str, Any]:
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
-    mean = {k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan for k in ("tracking", "densify", "mapping", "total")}
+    mean = {
+        k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan
+        for k in ("tracking", "densify", "mapping", "total")
+    }
     return {
         "tracking_s": mean["tracking"],
         "densify_s": mean["densify"],
@@ -199,7 +206,9 @@ def _timing(results: list[FrameResult], report: RuntimeReport) -> dict[str, Any]
     }
 
 
-def _render_metrics(config: Config, dataset: Dataset, slam: SplaTAM, device: torch.device, progress: bool) -> dict[str, Any]:
+def _render_metrics(
+    config: Config, dataset: Dataset, slam: SplaTAM, device: torch.device, progress: bool
+) -> dict[str, Any]:
     """PSNR, SSIM and depth L1 of the final map rendered at the estimated poses, every Nth frame."""
     state = slam.state
     assert state.gaussians is not None
@@ -208,7 +217,9 @@ def _render_metrics(config: Config, dataset: Dataset, slam: SplaTAM, device: tor
     scores = []
     for i in tqdm(picks, desc="evaluate", unit="frame", disable=not progress, dynamic_ncols=True):
         frame = uploader(dataset.decode(dataset.refs[i])).wait()
-        scores.append(view_quality(slam.renderer, state.gaussians, frame, state.poses[i], config.render.near, config.render.far))
+        scores.append(
+            view_quality(slam.renderer, state.gaussians, frame, state.poses[i], config.render.near, config.render.far)
+        )
     return {
         "psnr_db": float(np.mean([s.psnr_db for s in scores])),
         "ssim": float(np.mean([s.ssim for s in scores])),
@@ -220,7 +231,11 @@ def _render_metrics(config: Config, dataset: Dataset, slam: SplaTAM, device: tor
 
 
 def versions() -> dict[str, str | None]:
-    found: dict[str, str | None] = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda}
+    found: dict[str, str | None] = {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+    }
     try:
         from importlib.metadata import version
 
@@ -229,7 +244,11 @@ def versions() -> dict[str, str | None]:
         found["gsplat"] = None
     try:
         found["commit"] = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, cwd=Path(__file__).parent
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).parent,
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         found["commit"] = None

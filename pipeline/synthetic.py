@@ -90,7 +90,10 @@ def trajectory(config: SyntheticConfig, frames: int) -> np.ndarray:
     t = np.arange(frames) / config.fps
     omega = config.speed / 0.9  # the path below moves about 0.9 m per radian
     centre = np.asarray(PATH_CENTRE)
-    shake = [sum(np.sin(2 * math.pi * f * t + phase[3 + 3 * k + j]) for j, f in enumerate((1.3, 2.9, 4.7))) / 3 for k in range(3)]
+    shake = [
+        sum(np.sin(2 * math.pi * f * t + phase[3 + 3 * k + j]) for j, f in enumerate((1.3, 2.9, 4.7))) / 3
+        for k in range(3)
+    ]
     position = np.stack(
         [
             centre[0] + 1.0 * np.sin(0.7 * omega * t + phase[0]) + config.jitter * shake[0],
@@ -135,13 +138,19 @@ def _object_bounds(scene: Scene) -> list[tuple[str, torch.Tensor, torch.Tensor]]
     objects = [("box", b, b.reshape(2, 3)) for b in scene.boxes]
     objects += [("sphere", s, torch.stack([s[:3] - s[3], s[:3] + s[3]])) for s in scene.spheres]
     objects += [
-        ("cylinder", c, torch.stack([torch.stack([c[0] - c[4], c[1] - c[4], c[2]]), torch.stack([c[0] + c[4], c[1] + c[4], c[3]])]))
+        (
+            "cylinder",
+            c,
+            torch.stack([torch.stack([c[0] - c[4], c[1] - c[4], c[2]]), torch.stack([c[0] + c[4], c[1] + c[4], c[3]])]),
+        )
         for c in scene.cylinders
     ]
     return objects
 
 
-def _screen_rect(bounds: torch.Tensor, w2c: torch.Tensor, intrinsics: np.ndarray, width: int, height: int) -> tuple[int, int, int, int]:
+def _screen_rect(
+    bounds: torch.Tensor, w2c: torch.Tensor, intrinsics: np.ndarray, width: int, height: int
+) -> tuple[int, int, int, int]:
     """Pixel rectangle (v0, v1, u0, u1) that holds every ray able to hit the box `bounds` [2, 3]."""
     corners = torch.cartesian_prod(bounds[:, 0], bounds[:, 1], bounds[:, 2])
     cam = corners @ w2c[:3, :3].T + w2c[:3, 3]

@@ -98,10 +98,7 @@ def slice_refs(refs: list[FrameRef], config: DatasetConfig) -> list[FrameRef]:
     if all(p is not None for p in poses):
         rebased = relative_poses(np.stack(poses))
         poses = list(rebased)
-    return [
-        FrameRef(i, r.timestamp, r.color_path, r.depth_path, pose)
-        for i, (r, pose) in enumerate(zip(kept, poses))
-    ]
+    return [FrameRef(i, r.timestamp, r.color_path, r.depth_path, pose) for i, (r, pose) in enumerate(zip(kept, poses))]
 
 
 def detect_format(path: Path) -> str:

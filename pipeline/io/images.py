@@ -55,4 +55,5 @@ def write_depth_png(path: Path, depth: np.ndarray, scale: float) -> None:
 
 def write_color(path: Path, color: np.ndarray) -> None:
     """[H, W, 3] uint8 RGB -> image file (format by extension; JPEG at quality 95)."""
-    cv2.imwrite(str(path), cv2.cvtColor(color, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    cv2.imwrite(str(path), cv2.cvtColor(color, cv2.COLOR_RGB2BGR), params)

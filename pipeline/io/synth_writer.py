@@ -47,7 +47,13 @@ def write_synthetic(
         count = write_replica(path, frames, intrinsics)
     else:
         count = write_tum(path, frames, intrinsics, config.fps, depth_noise, hole_fraction, time_jitter, config.seed)
-    manifest = {"layout": layout, **asdict(config), "depth_noise": depth_noise, "holes": hole_fraction, "time_jitter": time_jitter}
+    manifest = {
+        "layout": layout,
+        **asdict(config),
+        "depth_noise": depth_noise,
+        "holes": hole_fraction,
+        "time_jitter": time_jitter,
+    }
     (path / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
     return count
 
@@ -62,4 +68,3 @@ def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True)
         return path
     write_synthetic(path, config, progress=progress)
     return path
-

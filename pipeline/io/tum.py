@@ -97,7 +97,9 @@ def open_tum(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
     if gt_rows is not None:
         poses = relative_poses(np.stack([pose_from_tum_row(gt_rows[k]) for _, _, k in triples]))
     refs = [
-        FrameRef(n, float(color_t[i]), path / color_names[i], path / depth_names[j], None if poses is None else poses[n])
+        FrameRef(
+            n, float(color_t[i]), path / color_names[i], path / depth_names[j], None if poses is None else poses[n]
+        )
         for n, (i, j, _) in enumerate(triples)
     ]
     if intrinsics is None:

@@ -64,7 +64,9 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs
 
     with torch.no_grad():
         alpha_min = cutoffs.alpha_min
-        extent = torch.clamp(torch.sqrt(2.0 * torch.log(opacities.clamp(min=alpha_min) / alpha_min)), max=cutoffs.extent_sigmas)
+        extent = torch.clamp(
+            torch.sqrt(2.0 * torch.log(opacities.clamp(min=alpha_min) / alpha_min)), max=cutoffs.extent_sigmas
+        )
         var = torch.stack([cov2d[:, 0, 0], cov2d[:, 1, 1]], -1).clamp(min=0)
         radii = torch.ceil(extent[:, None] * torch.sqrt(var))
         valid = (z >= camera.near) & (z <= camera.far) & (det > 0) & (opacities >= alpha_min)
@@ -76,7 +78,9 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs
 
 
 @torch.no_grad()
-def tile_lists(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def tile_lists(
+    means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int
+) -> torch.Tensor:
     """Per-tile Gaussian ids in depth order: [tiles, K] int64, padded with -1."""
     tiles_x, tiles_y = math.ceil(width / TILE), math.ceil(height / TILE)
     lo = torch.floor((means2d - radii) / TILE)
@@ -135,7 +139,9 @@ def composite(
         used = (ids >= 0)[:, None, :] & (power >= 0) & (alpha >= cutoffs.alpha_min)
         alpha = torch.where(used, alpha, torch.zeros_like(alpha))
         transmit = torch.cumprod(1 - alpha, dim=-1)  # after each Gaussian
-        alpha = torch.where(transmit > cutoffs.transmittance_min, alpha, torch.zeros_like(alpha))  # stop rule, exclusive
+        alpha = torch.where(
+            transmit > cutoffs.transmittance_min, alpha, torch.zeros_like(alpha)
+        )  # stop rule, exclusive
         before = torch.cat([torch.ones_like(transmit[..., :1]), transmit[..., :-1]], -1)
         weight = alpha * before  # [c, P, K]
         out_f.append(weight @ features[safe])  # [c, P, C]
@@ -143,12 +149,18 @@ def composite(
     feat = torch.cat(out_f).reshape(-1, TILE, TILE, features.shape[-1])
     acc = torch.cat(out_a).reshape(-1, TILE, TILE)
     tiles_y = n_tiles // tiles_x
-    feat = feat.reshape(tiles_y, tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4).reshape(tiles_y * TILE, tiles_x * TILE, -1)
+    feat = (
+        feat.reshape(tiles_y, tiles_x, TILE, TILE, -1)
+        .permute(0, 2, 1, 3, 4)
+        .reshape(tiles_y * TILE, tiles_x * TILE, -1)
+    )
     acc = acc.reshape(tiles_y, tiles_x, TILE, TILE).permute(0, 2, 1, 3).reshape(tiles_y * TILE, tiles_x * TILE)
     return feat[:height, :width], acc[:height, :width]
 
 
-def render_reference(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, cutoffs: Cutoffs = GSPLAT) -> RenderOutput:
+def render_reference(
+    gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, cutoffs: Cutoffs = GSPLAT
+) -> RenderOutput:
     proj = project(gaussians, camera, eps2d, cutoffs)
     lists = tile_lists(proj["means2d"], proj["radii"], proj["depths"], camera.width, camera.height)
     features = torch.cat([gaussians.colors, proj["depths"][:, None]], -1)

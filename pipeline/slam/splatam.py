@@ -84,8 +84,13 @@ class SplaTAM:
                     window = [
                         state.keyframes[i]
                         for i in select_window(
-                            state.keyframes, frame.depth, frame.intrinsics, c2w, cfg.mapping.window,
-                            cfg.keyframes.overlap_samples, self.generator,
+                            state.keyframes,
+                            frame.depth,
+                            frame.intrinsics,
+                            c2w,
+                            cfg.mapping.window,
+                            cfg.keyframes.overlap_samples,
+                            self.generator,
                         )  # fmt: skip
                     ]
             current = Keyframe(frame.index, frame.color, frame.depth, c2w.detach())
@@ -99,7 +104,9 @@ class SplaTAM:
     def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
         """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""
         valid = frame.depth > 0
-        self.state.gaussians = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, valid, self.config.gaussians)
+        self.state.gaussians = seed_gaussians(
+            frame.color, frame.depth, frame.intrinsics, c2w, valid, self.config.gaussians
+        )
         self.state.scene_radius = float(frame.depth.max()) / self.config.mapping.scene_radius_divisor
         return len(self.state.gaussians)
 
@@ -152,7 +159,9 @@ class SplaTAM:
             lost = f"pose jumped {jump:.3f} m from its prediction"
         elif self.frames_done > 1 and cov < self.config.tracking.lost_coverage:
             lost = f"map covers only {cov:.0%} of the valid pixels"
-        elif len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]:
+        elif (
+            len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]
+        ):
             lost = f"tracking loss {per_pixel:.4f} per pixel is over {LOSS_EXPLOSION_FACTOR:g}x its running median"
         if self.frames_done > 1 and math.isfinite(per_pixel):
             history.append(per_pixel)
@@ -175,7 +184,8 @@ class SplaTAM:
         return {
             "gaussians": {n: getattr(state.gaussians, n).cpu() for n in PARAMETER_NAMES},
             "keyframes": [
-                {"index": k.index, "color": k.color.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()} for k in state.keyframes
+                {"index": k.index, "color": k.color.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
+                for k in state.keyframes
             ],
             "poses": torch.stack(state.poses).cpu(),
             "scene_radius": state.scene_radius,
@@ -188,7 +198,10 @@ class SplaTAM:
         dev = self.device
         self.state = SlamState(
             gaussians=Gaussians(**{n: saved["gaussians"][n].to(dev) for n in PARAMETER_NAMES}),
-            keyframes=[Keyframe(k["index"], k["color"].to(dev), k["depth"].to(dev), k["c2w"].to(dev)) for k in saved["keyframes"]],
+            keyframes=[
+                Keyframe(k["index"], k["color"].to(dev), k["depth"].to(dev), k["c2w"].to(dev))
+                for k in saved["keyframes"]
+            ],
             poses=list(saved["poses"].to(dev)),
             scene_radius=float(saved["scene_radius"]),
             loss_history=list(saved["loss_history"]),

@@ -38,7 +38,9 @@ class ResultSink:
         self.folder = folder
         self.results: list[FrameResult] = []
         self.lost_frames = 0
-        self.bar = tqdm(total=total, initial=initial, unit="frame", desc="SLAM", disable=not progress, dynamic_ncols=True)
+        self.bar = tqdm(
+            total=total, initial=initial, unit="frame", desc="SLAM", disable=not progress, dynamic_ncols=True
+        )
 
     def consume(self, result: FrameResult) -> None:
         self.results.append(result)

@@ -77,7 +77,11 @@ class PinnedUploader:
             color = color_host.to(self.device, non_blocking=True).float().div_(255.0)
             depth = depth_host.to(self.device, non_blocking=True)
             intrinsics = torch.from_numpy(frame.intrinsics).float().to(self.device, non_blocking=True)
-            c2w_gt = None if frame.c2w_gt is None else torch.from_numpy(frame.c2w_gt).float().to(self.device, non_blocking=True)
+            c2w_gt = (
+                None
+                if frame.c2w_gt is None
+                else torch.from_numpy(frame.c2w_gt).float().to(self.device, non_blocking=True)
+            )
             event = torch.cuda.Event()
             event.record(self.stream)
         for tensor in (color, depth, intrinsics, c2w_gt):

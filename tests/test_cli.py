@@ -1,0 +1,139 @@
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.config import DatasetConfig
+from pipeline.io.dataset import open_dataset
+from pipeline.io.trajectory import read_tum_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("command", [[], ["run"], ["synth"], ["bench"], ["serve"], ["view"]])
+def test_help_everywhere(command: list[str], capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(command + ["--help"])
+    assert exit_info.value.code == 0
+    assert "usage: gsplatam" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["run", "--set", "tracking.nope=1"], "unknown config key 'tracking.nope'"),
+        (["run", "--set", "tracking.iters=x"], "bad value for 'tracking.iters'"),
+        (["run", "--preset", "huge"], "unknown preset 'huge'"),
+        (["run", "/no/such/folder"], "dataset folder not found: /no/such/folder"),
+        (["run", "--config", "/no/such.toml"], "config file not found"),
+        (["synth", "x", "--layout", "replica", "--holes", "0.1"], "apply to the TUM layout only"),
+        (["serve"], "'serve' is not built yet"),
+    ],
+)
+def test_user_errors_are_one_line_and_exit_2(argv: list[str], message: str, capsys, tmp_path: Path) -> None:
+    code = main(argv + (["--output", str(tmp_path)] if argv[0] == "run" else []))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith("gsplatam: error: ") and message in err[-1]
+    assert "Traceback" not in "\n".join(err)
+
+
+def test_argparse_errors_exit_2_in_one_line(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "--loader", "fast"])
+    assert exit_info.value.code == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_synth_writes_a_readable_tum_sequence_with_noise(tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    argv = ["synth", str(out), "--layout", "tum", "--frames", "4", "--width", "32", "--height", "24"]
+    assert main(argv + ["--depth-noise", "0.01", "--holes", "0.05", "--time-jitter", "0.01", "--quiet"]) == 0
+    dataset = open_dataset(DatasetConfig(path=str(out)))
+    frames = list(dataset.frames())
+    assert len(frames) == 4 and frames[0].depth.shape == (24, 32)
+    assert (frames[1].depth == 0).mean() > 0.0
+
+
+def run_folder(tmp_path: Path, name: str) -> Path:
+    return tmp_path / "out" / name
+
+
+def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_path: Path, capsys) -> None:
+    """The run command end to end: the pipelined runtime, metrics, outputs; then --resume."""
+    base = ["run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path / "out"), "--name", "r", "--quiet"]
+    assert main(base + ["--set", "dataset.end=4"]) == 0
+    printed = capsys.readouterr().out
+    assert "ATE RMSE / mean" in printed and "outputs:" in printed
+    folder = run_folder(tmp_path, "r")
+    for name in (
+        "config.toml",
+        "metrics.json",
+        "frames.csv",
+        "trajectory.txt",
+        "groundtruth.txt",
+        "map.ply",
+        "checkpoint.pt",
+    ):
+        assert (folder / name).exists(), name
+    assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 4
+
+    assert main(["run", "--resume", str(folder), "--set", "dataset.end=-1", "--quiet"]) == 0
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["frames"] == 6 and metrics["frames_this_run"] == 2
+    assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 6
+    assert len((folder / "frames.csv").read_text().splitlines()) == 1 + 6
+
+
+def test_twenty_frame_run_has_a_bounded_trajectory_error(tmp_path: Path) -> None:
+    """20 frames of the synthetic room at 64x48 with the tiny preset, through the whole CLI."""
+    sequence = tmp_path / "seq"
+    assert main(["synth", str(sequence), "--frames", "20", "--width", "64", "--height", "48", "--quiet"]) == 0
+    assert (
+        main(["run", str(sequence), "--preset", "tiny", "--output", str(tmp_path / "out"), "--name", "t", "--quiet"])
+        == 0
+    )
+    metrics = json.loads((run_folder(tmp_path, "t") / "metrics.json").read_text())
+    assert metrics["frames"] == 20 and metrics["lost_frames"] == 0
+    assert metrics["ate"]["rmse_cm"] < 5.0  # the camera moves ~20 cm over these frames
+    assert metrics["render"]["psnr_db"] > 18.0
+
+
+def test_a_bad_frame_stops_the_run_with_its_name(replica_seq: Path, tmp_path: Path, capsys) -> None:
+    broken = tmp_path / "broken"
+    shutil.copytree(replica_seq, broken)
+    (broken / "results" / "frame000003.jpg").write_bytes(b"truncated")
+    code = main(["run", str(broken), "--preset", "tiny", "--output", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "stage 'decode' failed on frame 3: unreadable image" in err and "frame000003.jpg" in err
+
+
+def test_sigterm_finishes_the_frame_and_writes_the_run_folder(tmp_path: Path) -> None:
+    sequence = tmp_path / "seq"
+    assert main(["synth", str(sequence), "--frames", "60", "--width", "64", "--height", "48", "--quiet"]) == 0
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(sequence), "--preset", "tiny", "--output", str(out), "--name", "s", "--quiet"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    csv = out / "s" / "frames.csv"
+    deadline = time.time() + 120
+    while time.time() < deadline and (not csv.exists() or len(csv.read_text().splitlines()) < 3):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    metrics = json.loads((out / "s" / "metrics.json").read_text())
+    assert metrics["interrupted"] is True and 2 <= metrics["frames"] < 60
+    assert (out / "s" / "map.ply").exists() and (out / "s" / "checkpoint.pt").exists()
+    assert len(read_tum_trajectory(out / "s" / "trajectory.txt")[0]) == metrics["frames"]

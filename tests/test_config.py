@@ -1,0 +1,87 @@
+from __future__ import annotations
+
+import pytest
+
+from pipeline.config import PRESETS, load_config, preset_config, to_toml, with_dataset_defaults
+from pipeline.errors import UserError
+
+
+@pytest.mark.parametrize(
+    "name, numbers",
+    [("base", (40, 60, 24, 5)), ("small", (10, 15, 15, 5)), ("tiny", (4, 6, 6, 5)), ("tum", (200, 30, 20, 5))],
+)
+def test_presets_have_the_specified_numbers(name: str, numbers: tuple[int, int, int, int]) -> None:
+    config = preset_config(name)
+    assert (config.tracking.iters, config.mapping.iters, config.mapping.window, config.keyframes.every) == numbers
+
+
+def test_shared_defaults() -> None:
+    c = preset_config("base")
+    assert c.tracking.lr_translation == 0.002
+    assert (c.mapping.lr_means, c.mapping.lr_colors, c.mapping.lr_rotations) == (1e-4, 2.5e-3, 1e-3)
+    assert (c.mapping.lr_opacities, c.mapping.lr_scales) == (5e-2, 1e-3)
+    assert (c.loss.color_weight, c.loss.depth_weight) == (0.5, 1.0)
+    assert c.tracking.silhouette_threshold == 0.99
+    assert (c.densify.silhouette_threshold, c.densify.depth_error_factor) == (0.5, 50.0)
+    assert c.keyframes.overlap_samples == 1600
+    assert (c.mapping.prune_opacity, c.mapping.prune_scale_factor, c.mapping.prune_at) == (0.005, 0.1, (0, 20))
+    assert (c.gaussians.kind, c.gaussians.isotropic) == ("3d", True)
+
+
+def test_dataset_defaults_fill_only_unset_values() -> None:
+    replica = with_dataset_defaults(preset_config("base"), "replica")
+    tum = with_dataset_defaults(preset_config("tum"), "tum")
+    assert (replica.tracking.lr_rotation, replica.mapping.scene_radius_divisor) == (0.0004, 3.0)
+    assert (tum.tracking.lr_rotation, tum.mapping.scene_radius_divisor) == (0.002, 2.0)
+    chosen = with_dataset_defaults(load_config("base", overrides=["tracking.lr_rotation=0.01"]), "tum")
+    assert chosen.tracking.lr_rotation == 0.01
+
+
+def test_overrides_are_typed_and_last_wins() -> None:
+    config = load_config(
+        "tiny", overrides=["tracking.iters=7", "gaussians.isotropic=false", "render.eps2d=0.1", "tracking.iters=9"]
+    )
+    assert config.tracking.iters == 9 and config.gaussians.isotropic is False and config.render.eps2d == 0.1
+    config = load_config("tiny", overrides=["dataset.intrinsics=1,2,3,4", "mapping.prune_at=0 10 20"])
+    assert config.dataset.intrinsics == (1.0, 2.0, 3.0, 4.0) and config.mapping.prune_at == (0, 10, 20)
+
+
+def test_toml_file_round_trip(tmp_path) -> None:
+    config = load_config("small", overrides=["tracking.iters=3", "run.name=abc", "gaussians.kind=2d"])
+    path = tmp_path / "c.toml"
+    path.write_text(to_toml(config))
+    assert load_config("base", path) == config
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["tracking.itres=3"], "unknown config key 'tracking.itres'"),
+        (["nosection.iters=3"], "unknown config key 'nosection.iters'"),
+        (["tracking.iters=many"], "bad value for 'tracking.iters'"),
+        (["tracking.iters=2.5"], "bad value for 'tracking.iters'"),
+        (["gaussians.kind=4d"], "bad value for 'gaussians.kind'"),
+        (["gaussians.isotropic=maybe"], "bad value for 'gaussians.isotropic'"),
+        (["tracking"], "bad --set 'tracking'"),
+        (["tracking=3"], "'tracking' is a section"),
+        (["mapping.window=1"], "mapping.window must be >= 2"),
+    ],
+)
+def test_bad_overrides_name_the_key(overrides: list[str], message: str) -> None:
+    with pytest.raises(UserError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_config("base", overrides=overrides)
+
+
+def test_unknown_preset() -> None:
+    with pytest.raises(UserError, match="unknown preset 'huge'"):
+        load_config("huge")
+    assert set(PRESETS) == {"base", "small", "tiny", "tum"}
+
+
+def test_bad_config_file(tmp_path) -> None:
+    with pytest.raises(UserError, match="config file not found"):
+        load_config("base", tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[tracking\niters = 3")
+    with pytest.raises(UserError, match="cannot read config file"):
+        load_config("base", bad)
