@@ -58,8 +58,17 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--time-jitter", type=float, default=0.0, help="TUM only: depth/pose timestamp offsets, s")
     synth.add_argument("--quiet", action="store_true")
 
-    bench = sub.add_parser("bench", help="throughput benchmarks (not built yet)")
-    bench.add_argument("rest", nargs=argparse.REMAINDER)
+    bench = sub.add_parser("bench", help="benchmark matrix: presets x sequences (x ablations), JSON and a table")
+    bench.add_argument("sequences", nargs="*", help="dataset folders (default: the synthetic room)")
+    bench.add_argument("--presets", default="tiny", help="comma-separated presets (default: tiny)")
+    bench.add_argument("--ablations", action="store_true", help="also run each side-by-side switch")
+    bench.add_argument("--variants", help="comma-separated variants instead of --ablations' full set")
+    bench.add_argument("--out", default="bench/results", help="where the JSON and table go")
+    bench.add_argument("--stem", default="bench", help="file name stem of the JSON and table")
+    bench.add_argument(
+        "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
+    )
+    bench.add_argument("--quiet", action="store_true")
     serve = sub.add_parser("serve", help="live daemon fed by Record3D or NeRFCapture (not built yet)")
     serve.add_argument("rest", nargs=argparse.REMAINDER)
     view = sub.add_parser("view", help="web viewer for a run folder or PLY (not built yet)")
@@ -125,11 +134,30 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from pipeline.bench import ABLATIONS, default_variants, markdown, run_matrix, write_report
+    from pipeline.config import load_config
+
+    variants = args.variants.split(",") if args.variants else default_variants(args.ablations)
+    unknown = [v for v in variants if v not in ABLATIONS]
+    if unknown:
+        raise UserError(f"unknown variant '{unknown[0]}' (choose from {', '.join(ABLATIONS)})")
+    presets = args.presets.split(",")
+    for preset in presets:
+        load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
+    out = Path(args.out)
+    report = run_matrix(args.sequences or ["synthetic"], presets, variants, args.overrides, out, not args.quiet)
+    json_path, md_path = write_report(report, out, args.stem)
+    print(markdown(report))
+    print(f"wrote {json_path} and {md_path}")
+    return 0
+
+
 def cmd_not_built(args: argparse.Namespace) -> int:
     raise UserError(f"'{args.command}' is not built yet in this version")
 
 
-COMMANDS = {"run": cmd_run, "synth": cmd_synth, "bench": cmd_not_built, "serve": cmd_not_built, "view": cmd_not_built}
+COMMANDS = {"run": cmd_run, "synth": cmd_synth, "bench": cmd_bench, "serve": cmd_not_built, "view": cmd_not_built}
 
 
 def main(argv: list[str] | None = None) -> int:

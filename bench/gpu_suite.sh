@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
+# Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
+#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-slow types pipeline ablations profile
+set -uo pipefail
+out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
+shift
+mkdir -p "$out"
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+tum=.data/tum_fr1_xyz_37
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+bench() { python3 -m pipeline bench --quiet --out "$out" "$@" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
+for part in "$@"; do
+  echo "== $part"
+  case $part in
+    parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    presets-fast) bench synthetic "$tum" --presets tiny,small --stem presets_fast ;;
+    presets-slow) bench synthetic --presets base,tum --stem presets_slow_synthetic
+                  bench "$tum" --presets base,tum --stem presets_slow_tum ;;
+    types) bench synthetic "$tum" --presets tiny --variants default,3d-anisotropic,2d-isotropic,2d-anisotropic --stem gaussian_types ;;
+    pipeline) bench synthetic --presets tiny --variants default,sync-loader --stem pipeline ;;
+    ablations) bench synthetic --presets tiny,small --ablations --stem ablations ;;
+    profile) python3 -m pipeline run --preset tiny --profile --quiet --output /tmp/profile --name tiny \
+               --set synthetic.frames=60 2>&1 | tail -n 3
+             cp /tmp/profile/tiny/profile.txt "$out/profile_tiny.txt" ;;
+    *) echo "unknown part $part"; exit 2 ;;
+  esac
+done

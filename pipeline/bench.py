@@ -1,0 +1,161 @@
+"""The benchmark harness: a matrix of presets x sequences x variants, one JSON and one table.
+
+Each cell is a full `run` (the same runtime and metrics as the CLI), so a benchmark number is
+always what a user would get.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from pipeline.config import Config, load_config, with_value
+from pipeline.devices import describe, resolve_device
+from pipeline.run import run_slam, versions
+
+log = logging.getLogger("gsplatam")
+
+# Side-by-side switches; each is compared with the default configuration in the same invocation.
+ABLATIONS: dict[str, tuple[str, ...]] = {
+    "default": (),
+    "sync-loader": ("run.loader=sync",),
+    "packed": ("render.packed=true",),
+    "3d-anisotropic": ("gaussians.isotropic=false",),
+    "2d-isotropic": ("gaussians.kind=2d",),
+    "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),
+}
+
+
+@dataclass(frozen=True)
+class Cell:
+    sequence: str  # a dataset folder, or "synthetic"
+    preset: str
+    variant: str = "default"
+
+
+def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
+    config = load_config(cell.preset, overrides=base_overrides + list(ABLATIONS[cell.variant]))
+    if cell.sequence != "synthetic":
+        config = with_value(config, "dataset.path", cell.sequence)
+    config = with_value(config, "run.output", str(output))
+    return with_value(config, "run.name", run_name)
+
+
+def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
+    t, runtime = metrics["time"], metrics["runtime"]
+    ate, render = metrics.get("ate") or {}, metrics.get("render") or {}
+    return {
+        "sequence": metrics["dataset"],
+        "preset": cell.preset,
+        "variant": cell.variant,
+        "frames": metrics["frames"],
+        "tracking_ms": 1000 * t["tracking_s"],
+        "densify_ms": 1000 * t["densify_s"],
+        "mapping_ms": 1000 * t["mapping_s"],
+        "total_ms": 1000 * t["total_s"],
+        "fps_wall": t["fps_wall"],
+        "gpu_busy": runtime.get("gpu_busy_fraction"),
+        "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
+        "gaussians": metrics["gaussians"],
+        "peak_gpu_gb": metrics.get("peak_gpu_memory_gb"),
+        "ate_rmse_cm": ate.get("rmse_cm"),
+        "ate_mean_cm": ate.get("mean_cm"),
+        "psnr_db": render.get("psnr_db"),
+        "ssim": render.get("ssim"),
+        "depth_l1_cm": render.get("depth_l1_cm"),
+        "lost_frames": metrics["lost_frames"],
+        "warmup_frames_excluded": t["warmup_frames_excluded"],
+    }
+
+
+def add_ratios(rows: list[dict[str, Any]]) -> None:
+    """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
+    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default"}
+    for row in rows:
+        base = defaults.get((row["sequence"], row["preset"]))
+        for key in ("total_ms", "ate_rmse_cm", "psnr_db"):
+            ok = base is not None and row[key] is not None and base[key]
+            row[f"{key}_ratio"] = row[key] / base[key] if ok else None
+
+
+def run_matrix(
+    sequences: list[str],
+    presets: list[str],
+    variants: list[str],
+    base_overrides: list[str],
+    output: Path,
+    progress: bool,
+) -> dict[str, Any]:
+    rows = []
+    for sequence in sequences:
+        for preset in presets:
+            for variant in variants:
+                cell = Cell(sequence, preset, variant)
+                name = f"{Path(sequence).name}_{preset}_{variant}"
+                log.info("bench: %s", name)
+                config = cell_config(cell, base_overrides, output / "runs", name)
+                metrics = run_slam(config, progress=progress).metrics
+                rows.append(row_of(cell, metrics))
+    add_ratios(rows)
+    device = resolve_device("auto")
+    return {
+        "device": describe(device, load_config("base")),
+        "driver": _driver_version(device),
+        "versions": versions(),
+        "overrides": base_overrides,
+        "rows": rows,
+    }
+
+
+def _driver_version(device: torch.device) -> str | None:
+    if device.type != "cuda":
+        return None
+    try:
+        import subprocess
+
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"], capture_output=True, text=True
+        )
+        return out.stdout.strip().splitlines()[0]
+    except (OSError, IndexError):
+        return None
+
+
+COLUMNS = [
+    ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("frames", "{}"),
+    ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
+    ("total_ms_ratio", "{:.2f}"), ("fps_wall", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
+    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"),
+]  # fmt: skip
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lines = [
+        f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
+        f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame with frame 0 excluded.",
+        "",
+        "| " + " | ".join(name for name, _ in COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
+    ]
+    for row in report["rows"]:
+        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    json_path, md_path = out / f"{stem}.json", out / f"{stem}.md"
+    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    md_path.write_text(markdown(report))
+    return json_path, md_path
+
+
+def default_variants(ablations: bool) -> list[str]:
+    return list(ABLATIONS) if ablations else ["default"]
