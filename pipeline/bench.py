@@ -88,9 +88,10 @@ def run_matrix(
     presets: list[str],
     variants: list[str],
     base_overrides: list[str],
-    output: Path,
+    runs: Path,
     progress: bool,
 ) -> dict[str, Any]:
+    """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
     rows = []
     for sequence in sequences:
         for preset in presets:
@@ -98,7 +99,7 @@ def run_matrix(
                 cell = Cell(sequence, preset, variant)
                 name = f"{Path(sequence).name}_{preset}_{variant}"
                 log.info("bench: %s", name)
-                config = cell_config(cell, base_overrides, output / "runs", name)
+                config = cell_config(cell, base_overrides, runs, name)
                 metrics = run_slam(config, progress=progress).metrics
                 rows.append(row_of(cell, metrics))
     add_ratios(rows)

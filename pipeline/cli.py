@@ -65,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--variants", help="comma-separated variants instead of --ablations' full set")
     bench.add_argument("--out", default="bench/results", help="where the JSON and table go")
     bench.add_argument("--stem", default="bench", help="file name stem of the JSON and table")
+    bench.add_argument("--runs", default="outputs/bench", help="where the run folders go")
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
@@ -146,7 +147,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for preset in presets:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
     out = Path(args.out)
-    report = run_matrix(args.sequences or ["synthetic"], presets, variants, args.overrides, out, not args.quiet)
+    report = run_matrix(
+        args.sequences or ["synthetic"], presets, variants, args.overrides, Path(args.runs), not args.quiet
+    )
     json_path, md_path = write_report(report, out, args.stem)
     print(markdown(report))
     print(f"wrote {json_path} and {md_path}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import platform
 import subprocess
 from dataclasses import dataclass, replace
@@ -251,7 +252,7 @@ def versions() -> dict[str, str | None]:
             cwd=Path(__file__).parent,
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        found["commit"] = None
+        found["commit"] = os.environ.get("GSPLATAM_COMMIT")  # set by bench/gpu_suite.sh where there is no .git
     return found
 
 
