@@ -24,6 +24,7 @@ from pipeline.io.dataset import Dataset, FrameRef, open_dataset
 from pipeline.io.run_folder import RunFolder
 from pipeline.io.synth_writer import cached_synthetic
 from pipeline.metrics import absolute_trajectory_error, view_quality
+from pipeline.profiling import all_threads_config, summarise
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, execute
 from pipeline.slam.splatam import FrameResult, SplaTAM
@@ -115,13 +116,23 @@ def _execute(
 ) -> RuntimeReport:
     if not profile_trace:
         return execute(graph, config.run.loader)
-    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    with profile(activities=activities) as prof:
+    cuda = device.type == "cuda"
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities, experimental_config=all_threads_config()) as prof:
         report = execute(graph, config.run.loader)
     prof.export_chrome_trace(str(folder.path / "trace.json"))
-    sort_key = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
-    table = prof.key_averages().table(sort_by=sort_key, row_limit=25)
-    (folder.path / "profile.txt").write_text(table + "\n")
+    summary, table = summarise(prof, cuda)
+    report.profile = summary
+    stages = "\n".join(
+        f"  {name:<10} {v['count']:>5} calls  host {v['cpu_ms']:9.1f} ms  device {v['device_ms']:9.1f} ms"
+        for name, v in summary["stages"].items()
+    )
+    busy = (
+        f"kernel busy fraction {summary['kernel_busy_fraction']:.3f} of {summary['kernel_wall_ms']:.0f} ms\n"
+        if cuda
+        else ""
+    )
+    (folder.path / "profile.txt").write_text(f"{busy}per stage:\n{stages}\n\n{table}\n")
     log.info("profile: %s and %s", folder.path / "trace.json", folder.path / "profile.txt")
     return report
 

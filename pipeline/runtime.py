@@ -1,8 +1,9 @@
 """The asyncio runtime: wires source -> decode -> upload -> SLAM -> sinks with bounded queues.
 
-Decoding, uploading and SLAM each run in their own worker threads, so the event loop only
-moves items between queues; while SLAM works on frame i, frames i+1.. are being read,
-decoded and copied to the GPU. `run_sync` is the plain loop kept for comparison.
+Decoding and uploading run in worker threads and SLAM in a dedicated thread fed through a
+thread-safe hand-off, so the event loop only moves items between queues; while SLAM works on
+frame i, frames i+1.. are being read, decoded and copied to the GPU. `run_sync` is the plain
+loop kept for comparison.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStep
 from pipeline.stages.stage import StageFailure, StageStats, transform_stage
 from pipeline.stages.upload import UploadedFrame
+from pipeline.stages.worker import dedicated_thread_stage
 
 try:
     import uvloop
@@ -39,6 +41,7 @@ class RuntimeReport:
     queues: dict[str, dict[str, int]] = field(default_factory=dict)
     gpu_gaps_ms: list[float] = field(default_factory=list)
     gpu_busy_fraction: float | None = None  # frame spans on the compute stream / their wall time
+    profile: dict[str, Any] | None = None  # kernel-timeline summary when run under the profiler
 
     def summary(self) -> dict[str, Any]:
         gaps = sorted(self.gpu_gaps_ms)
@@ -51,6 +54,7 @@ class RuntimeReport:
             "stages": self.stages,
             "queues": self.queues,
             "gpu_busy_fraction": self.gpu_busy_fraction,
+            "profile": self.profile,
             "gpu_gap_ms": {
                 "mean": sum(gaps) / len(gaps) if gaps else None,
                 "p95": gaps[int(0.95 * (len(gaps) - 1))] if gaps else None,
@@ -108,7 +112,6 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     pools = [
         ThreadPoolExecutor(graph.decode_workers, thread_name_prefix="decode"),
         ThreadPoolExecutor(1, thread_name_prefix="upload"),
-        ThreadPoolExecutor(1, thread_name_prefix="slam"),
     ]
     start = time.perf_counter()
     try:
@@ -118,7 +121,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
                 group.create_task(transform_stage("decode", graph.decode, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
             ]
-            slam = group.create_task(transform_stage("slam", graph.slam, uploaded, results, pools[2], stats[2], stop))
+            slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
             group.create_task(graph.sink.drain(results))
             await slam
             for task in upstream:

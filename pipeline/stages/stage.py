@@ -62,10 +62,8 @@ async def transform_stage(
     outbox: StageQueue[Any],
     executor: Executor,
     stats: StageStats,
-    stop: asyncio.Event | None = None,
 ) -> None:
-    """Apply `fn` to every item in order, off the event loop. With `stop`, end after the
-    item in hand once it is set (the current frame finishes, queued ones are left)."""
+    """Apply `fn` to every item in order, off the event loop."""
     loop = asyncio.get_running_loop()
     while not isinstance(item := await inbox.get(), EndOfStream):
         start = time.perf_counter()
@@ -75,6 +73,4 @@ async def transform_stage(
             raise StageFailure(name, frame_index(item), exc) from exc
         stats.record(time.perf_counter() - start)
         await outbox.put(result)
-        if stop is not None and stop.is_set():
-            break
     await outbox.put(END)
