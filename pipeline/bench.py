@@ -16,7 +16,7 @@ import torch
 
 from pipeline.config import Config, load_config, with_value
 from pipeline.devices import describe, resolve_device
-from pipeline.run import run_slam, versions
+from pipeline.run import WARMUP_FRAMES, run_slam, versions
 
 log = logging.getLogger("gsplatam")
 
@@ -24,6 +24,7 @@ log = logging.getLogger("gsplatam")
 ABLATIONS: dict[str, tuple[str, ...]] = {
     "default": (),
     "sync-loader": ("run.loader=sync",),
+    "no-compile": ("run.compile=off",),
     "packed": ("render.packed=true",),
     "3d-anisotropic": ("gaussians.isotropic=false",),
     "2d-isotropic": ("gaussians.kind=2d",),
@@ -139,7 +140,8 @@ COLUMNS = [
 def markdown(report: dict[str, Any]) -> str:
     lines = [
         f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
-        f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame with frame 0 excluded.",
+        f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame; the first "
+        f"{WARMUP_FRAMES} frames (initialisation, compilation) excluded.",
         "",
         "| " + " | ".join(name for name, _ in COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),

@@ -19,6 +19,7 @@ DatasetFormat = Literal["auto", "replica", "tum"]
 GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
+Switch = Literal["auto", "on", "off"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,7 @@ class RunConfig:
     device: str = "auto"  # auto | cpu | cuda
     eval_every: int = 5  # render metrics on every Nth frame
     loader: LoaderKind = "pipelined"
+    compile: Switch = "auto"  # torch.compile the per-iteration loss and pose functions (auto: on CUDA)
     queue_size: int = 4
     seed: int = 0
 

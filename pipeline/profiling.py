@@ -9,6 +9,7 @@ from torch.autograd import DeviceType
 from torch.profiler import profile
 
 STAGES = ("decode", "upload", "slam_step", "tracking", "densify", "mapping")
+ANNOTATIONS = (*STAGES, "total")  # record_function ranges, which also appear on the device timeline
 
 
 def all_threads_config() -> Any:

@@ -71,7 +71,7 @@ def test_keyframe_overlap_on_a_hand_made_case() -> None:
     assert fractions[1].item() == 0.0  # looking the other way
     assert 0.3 < fractions[2].item() < 1.0  # turned: partial overlap
     assert fractions[3].item() == 0.0  # the points are behind it
-    keyframes = [Keyframe(i, torch.zeros(48, 64, 3), depth, pose) for i, pose in enumerate(poses)]
+    keyframes = [Keyframe.of(i, torch.zeros(48, 64, 3), depth, pose) for i, pose in enumerate(poses)]
     chosen = select_window(
         keyframes, depth, k, torch.eye(4), window=24, samples=100, generator=torch.Generator().manual_seed(0)
     )
@@ -183,3 +183,26 @@ def test_slam_state_survives_a_checkpoint(replica_seq) -> None:
     torch.testing.assert_close(torch.stack(fresh.state.poses), torch.stack(straight.state.poses))
     torch.testing.assert_close(fresh.state.gaussians.means, straight.state.gaussians.means)
     assert SMALL_SYNTH.frames >= 4
+
+
+def test_separable_ssim_matches_a_direct_2d_window() -> None:
+    """The fast SSIM (five statistics, two 1D passes) against the textbook 11x11 window."""
+    import torch.nn.functional as F
+
+    from pipeline.slam.losses import ssim_map
+
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(40, 50, 3, generator=gen)
+    b = (a + 0.1 * torch.randn(40, 50, 3, generator=gen)).clamp(0, 1)
+    g = torch.exp(-((torch.arange(11) - 5.0) ** 2) / (2 * 1.5**2))
+    g = g / g.sum()
+    window = (g[:, None] * g[None, :]).expand(3, 1, 11, 11)
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(t, window, padding=5, groups=3)
+
+    mx, my = blur(x), blur(y)
+    sx, sy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    direct = (((2 * mx * my + 1e-4) * (2 * sxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (sx + sy + 9e-4))).mean(1)[0]
+    torch.testing.assert_close(ssim_map(a, b), direct, atol=1e-5, rtol=0)

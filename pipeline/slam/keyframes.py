@@ -11,10 +11,23 @@ from pipeline.geometry import backproject, invert_pose, pixel_grid, project
 
 @dataclass
 class Keyframe:
+    """A frame kept for mapping. Colour is stored as 8-bit (what the camera gave): a quarter of
+    the memory of float32, which matters at hundreds of keyframes."""
+
     index: int
-    color: torch.Tensor  # [H, W, 3] float32 in [0, 1]
+    color_u8: torch.Tensor  # [H, W, 3] uint8
     depth: torch.Tensor  # [H, W] metres
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world
+
+    @staticmethod
+    def of(index: int, color: torch.Tensor, depth: torch.Tensor, c2w: torch.Tensor) -> Keyframe:
+        """From a float colour image [H, W, 3] in [0, 1]."""
+        return Keyframe(index, (color * 255).round_().to(torch.uint8), depth, c2w)
+
+    @property
+    def color(self) -> torch.Tensor:
+        """[H, W, 3] float32 in [0, 1]."""
+        return self.color_u8.float() / 255.0
 
 
 def sample_valid_pixels(depth: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:

@@ -9,19 +9,8 @@ import torch
 from pipeline.config import LossConfig, MappingConfig
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, prune_mask
+from pipeline.slam.kernels import EAGER, SlamKernels
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.losses import ssim
-
-
-def mapping_loss(
-    render_color: torch.Tensor, render_depth: torch.Tensor, view: Keyframe, ssim_weight: float, weights: LossConfig
-) -> torch.Tensor:
-    """Mean L1 depth over valid depth + colour (1 - w) x L1 + w x (1 - SSIM) over the image."""
-    valid = view.depth > 0
-    depth_l1 = torch.where(valid, (render_depth - view.depth).abs(), 0.0).sum() / valid.sum().clamp(min=1)
-    color_l1 = (render_color - view.color).abs().mean()
-    color = (1 - ssim_weight) * color_l1 + ssim_weight * (1 - ssim(render_color, view.color))
-    return weights.depth_weight * depth_l1 + weights.color_weight * color
 
 
 def _learning_rates(config: MappingConfig) -> dict[str, float]:
@@ -59,6 +48,7 @@ def map_window(
     near: float,
     far: float,
     rng: random.Random,
+    kernels: SlamKernels = EAGER,
 ) -> Gaussians:
     """`config.iters` Adam steps, each on one view drawn at random; pruning at `config.prune_at`.
 
@@ -67,7 +57,9 @@ def map_window(
     params = as_leaves(gaussians)
     rates = _learning_rates(config)
     optimizer = torch.optim.Adam(
-        [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES], eps=1e-15
+        [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES],
+        eps=1e-15,
+        fused=params.means.is_cuda,
     )
     height, width = views[0].depth.shape
     cameras = [Camera(torch.linalg.inv(v.c2w), intrinsics, width, height, near, far) for v in views]
@@ -78,7 +70,10 @@ def map_window(
             params = _prune(optimizer, keep)
         pick = rng.randrange(len(views))
         out = renderer(params, cameras[pick])
-        loss = mapping_loss(out.color, out.depth, views[pick], config.ssim_weight, weights)
+        view = views[pick]
+        loss = kernels.mapping_loss(
+            out.color, out.depth, view.color, view.depth, config.ssim_weight, weights.depth_weight, weights.color_weight
+        )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

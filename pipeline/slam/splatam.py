@@ -14,6 +14,7 @@ from pipeline.geometry import constant_velocity
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, detached, seed_gaussians
+from pipeline.slam.kernels import make_kernels
 from pipeline.slam.keyframes import Keyframe, select_window
 from pipeline.slam.mapping import map_window
 from pipeline.slam.timing import StageClock
@@ -56,6 +57,8 @@ class SplaTAM:
         self.rng = random.Random(config.run.seed)
         self.generator = torch.Generator().manual_seed(config.run.seed)
         self.clock = StageClock(device)
+        compiled = config.run.compile == "on" or (config.run.compile == "auto" and device.type == "cuda")
+        self.kernels = make_kernels(compiled)
 
     @property
     def frames_done(self) -> int:
@@ -76,7 +79,7 @@ class SplaTAM:
                     c2w_init = self._initial_pose()
                     tracked = track(
                         detached(state.gaussians), frame, c2w_init, self.renderer, cfg.tracking, cfg.loss,
-                        cfg.render.near, cfg.render.far,
+                        cfg.render.near, cfg.render.far, self.kernels,
                     )  # fmt: skip
                     c2w, loss, coverage = tracked.c2w, tracked.best_loss, tracked.coverage
                 with self.clock.stage("densify"):
@@ -93,7 +96,7 @@ class SplaTAM:
                             self.generator,
                         )  # fmt: skip
                     ]
-            current = Keyframe(frame.index, frame.color, frame.depth, c2w.detach())
+            current = Keyframe.of(frame.index, frame.color, frame.depth, c2w.detach())
             with self.clock.stage("mapping"):
                 self._map(window + [current], frame.intrinsics)
             if frame.index % cfg.keyframes.every == 0 or is_last:
@@ -133,7 +136,7 @@ class SplaTAM:
             return
         state.gaussians = map_window(
             state.gaussians, views, intrinsics, self.renderer, cfg.mapping, cfg.loss, state.scene_radius,
-            cfg.render.near, cfg.render.far, self.rng,
+            cfg.render.near, cfg.render.far, self.rng, self.kernels,
         )  # fmt: skip
 
     def _result(
@@ -184,7 +187,7 @@ class SplaTAM:
         return {
             "gaussians": {n: getattr(state.gaussians, n).cpu() for n in PARAMETER_NAMES},
             "keyframes": [
-                {"index": k.index, "color": k.color.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
+                {"index": k.index, "color_u8": k.color_u8.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
                 for k in state.keyframes
             ],
             "poses": torch.stack(state.poses).cpu(),
@@ -199,7 +202,7 @@ class SplaTAM:
         self.state = SlamState(
             gaussians=Gaussians(**{n: saved["gaussians"][n].to(dev) for n in PARAMETER_NAMES}),
             keyframes=[
-                Keyframe(k["index"], k["color"].to(dev), k["depth"].to(dev), k["c2w"].to(dev))
+                Keyframe(k["index"], k["color_u8"].to(dev), k["depth"].to(dev), k["c2w"].to(dev))
                 for k in saved["keyframes"]
             ],
             poses=list(saved["poses"].to(dev)),

@@ -10,6 +10,7 @@ from pipeline.config import LossConfig, TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.kernels import EAGER, SlamKernels
 
 
 @dataclass
@@ -17,24 +18,6 @@ class TrackResult:
     c2w: torch.Tensor  # [4, 4] the pose with the lowest loss seen
     best_loss: torch.Tensor  # [] that loss (device tensor; read it at the frame boundary)
     coverage: torch.Tensor  # [] fraction of valid-depth pixels the map covered at that pose
-
-
-def tracking_loss(
-    render_color: torch.Tensor,
-    render_depth: torch.Tensor,
-    silhouette: torch.Tensor,
-    frame: DeviceFrame,
-    threshold: float,
-    weights: LossConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sum of L1 depth and colour errors over valid-depth pixels the map covers (silhouette > threshold).
-
-    -> (loss [], mask [H, W] bool).
-    """
-    mask = (frame.depth > 0) & (silhouette > threshold)
-    depth_l1 = torch.where(mask, (render_depth - frame.depth).abs(), 0.0).sum()
-    color_l1 = torch.where(mask[..., None], (render_color - frame.color).abs(), 0.0).sum()
-    return weights.depth_weight * depth_l1 + weights.color_weight * color_l1, mask
 
 
 def track(
@@ -46,6 +29,7 @@ def track(
     weights: LossConfig,
     near: float,
     far: float,
+    kernels: SlamKernels = EAGER,
 ) -> TrackResult:
     """Fresh Adam on the world-to-camera quaternion and translation for `config.iters` steps.
 
@@ -56,22 +40,27 @@ def track(
     quat = rotmat_to_quat(w2c_init[:3, :3]).clone().requires_grad_(True)
     trans = w2c_init[:3, 3].clone().requires_grad_(True)
     optimizer = torch.optim.Adam(
-        [{"params": [quat], "lr": config.lr_rotation}, {"params": [trans], "lr": config.lr_translation}], eps=1e-15
+        [{"params": [quat], "lr": config.lr_rotation}, {"params": [trans], "lr": config.lr_translation}],
+        eps=1e-15,
+        fused=quat.is_cuda,
     )
     best_loss = torch.tensor(float("inf"), device=quat.device)
     best_quat, best_trans = quat.detach().clone(), trans.detach().clone()
     best_coverage = torch.zeros((), device=quat.device)
     valid_pixels = (frame.depth > 0).sum().clamp(min=1)
     for _ in range(config.iters):
-        camera = Camera(pose_matrix(quat, trans), frame.intrinsics, frame.width, frame.height, near, far)
+        camera = Camera(kernels.pose_matrix(quat, trans), frame.intrinsics, frame.width, frame.height, near, far)
         out = renderer(gaussians, camera)
-        loss, mask = tracking_loss(out.color, out.depth, out.silhouette, frame, config.silhouette_threshold, weights)
+        loss, tracked_pixels = kernels.tracking_loss(
+            out.color, out.depth, out.silhouette, frame.color, frame.depth,
+            config.silhouette_threshold, weights.depth_weight, weights.color_weight,
+        )  # fmt: skip
         with torch.no_grad():
             better = loss < best_loss
             best_loss = torch.where(better, loss, best_loss)
             best_quat = torch.where(better, quat, best_quat)
             best_trans = torch.where(better, trans, best_trans)
-            best_coverage = torch.where(better, mask.sum() / valid_pixels, best_coverage)
+            best_coverage = torch.where(better, tracked_pixels / valid_pixels, best_coverage)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

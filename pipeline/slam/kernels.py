@@ -1,0 +1,71 @@
+"""The small tensor functions run in every tracking and mapping iteration, compiled or not.
+
+Each is a handful of element-wise kernels over the image (or a few dozen tiny ones for the pose
+matrix); on the GPU the host time to launch them rivals their run time, and `torch.compile`
+fuses them into a few kernels. The choice is made once, here (`make_kernels`), not in the loops.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.geometry import pose_matrix
+from pipeline.slam.losses import ssim
+
+
+def tracking_loss(
+    render_color: torch.Tensor,  # [H, W, 3]
+    render_depth: torch.Tensor,  # [H, W] metres
+    silhouette: torch.Tensor,  # [H, W]
+    color: torch.Tensor,  # [H, W, 3] observed
+    depth: torch.Tensor,  # [H, W] observed metres, 0 = invalid
+    threshold: float,
+    depth_weight: float,
+    color_weight: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sum of L1 depth and colour errors over valid-depth pixels the map covers (silhouette >
+    threshold) -> (loss [], number of those pixels [])."""
+    mask = (depth > 0) & (silhouette > threshold)
+    depth_l1 = torch.where(mask, (render_depth - depth).abs(), 0.0).sum()
+    color_l1 = torch.where(mask[..., None], (render_color - color).abs(), 0.0).sum()
+    return depth_weight * depth_l1 + color_weight * color_l1, mask.sum()
+
+
+def mapping_loss(
+    render_color: torch.Tensor,  # [H, W, 3]
+    render_depth: torch.Tensor,  # [H, W] metres
+    color: torch.Tensor,  # [H, W, 3] observed
+    depth: torch.Tensor,  # [H, W] observed metres, 0 = invalid
+    ssim_weight: float,
+    depth_weight: float,
+    color_weight: float,
+) -> torch.Tensor:
+    """Mean L1 depth over valid depth + colour (1 - w) x L1 + w x (1 - SSIM) over the image."""
+    valid = depth > 0
+    depth_l1 = torch.where(valid, (render_depth - depth).abs(), 0.0).sum() / valid.sum().clamp(min=1)
+    color_l1 = (render_color - color).abs().mean()
+    color_term = (1 - ssim_weight) * color_l1 + ssim_weight * (1 - ssim(render_color, color))
+    return depth_weight * depth_l1 + color_weight * color_term
+
+
+@dataclass(frozen=True)
+class SlamKernels:
+    pose_matrix: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
+    mapping_loss: Callable[..., torch.Tensor]
+
+
+def make_kernels(compiled: bool) -> SlamKernels:
+    if not compiled:
+        return SlamKernels(pose_matrix, tracking_loss, mapping_loss)
+    return SlamKernels(
+        torch.compile(pose_matrix, dynamic=False),
+        torch.compile(tracking_loss, dynamic=False),
+        torch.compile(mapping_loss, dynamic=False),
+    )
+
+
+EAGER = make_kernels(compiled=False)
