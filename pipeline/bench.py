@@ -60,6 +60,8 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
         "mapping_ms": 1000 * t["mapping_s"],
         "total_ms": 1000 * t["total_s"],
         "fps_wall": t["fps_wall"],
+        "fps_steady": t["fps_steady"],
+        "kernel_busy": (runtime.get("profile") or {}).get("kernel_busy_fraction"),
         "gpu_busy": runtime.get("gpu_busy_fraction"),
         "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
         "gaussians": metrics["gaussians"],
@@ -91,6 +93,7 @@ def run_matrix(
     base_overrides: list[str],
     runs: Path,
     progress: bool,
+    profile: bool = False,
 ) -> dict[str, Any]:
     """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
     rows = []
@@ -101,7 +104,7 @@ def run_matrix(
                 name = f"{Path(sequence).name}_{preset}_{variant}"
                 log.info("bench: %s", name)
                 config = cell_config(cell, base_overrides, runs, name)
-                metrics = run_slam(config, progress=progress).metrics
+                metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
                 rows.append(row_of(cell, metrics))
     add_ratios(rows)
     device = resolve_device("auto")
@@ -110,6 +113,7 @@ def run_matrix(
         "driver": _driver_version(device),
         "versions": versions(),
         "overrides": base_overrides,
+        "profiled": profile,
         "rows": rows,
     }
 
@@ -131,7 +135,7 @@ def _driver_version(device: torch.device) -> str | None:
 COLUMNS = [
     ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("frames", "{}"),
     ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
-    ("total_ms_ratio", "{:.2f}"), ("fps_wall", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"),
 ]  # fmt: skip
@@ -141,7 +145,12 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [
         f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
         f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame; the first "
-        f"{WARMUP_FRAMES} frames (initialisation, compilation) excluded.",
+        f"{WARMUP_FRAMES} frames (initialisation, compilation) excluded."
+        + (
+            " Run under the torch profiler (slower; kernel_busy is from its kernel timeline)."
+            if report["profiled"]
+            else ""
+        ),
         "",
         "| " + " | ".join(name for name, _ in COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),

@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="bench/results", help="where the JSON and table go")
     bench.add_argument("--stem", default="bench", help="file name stem of the JSON and table")
     bench.add_argument("--runs", default="outputs/bench", help="where the run folders go")
+    bench.add_argument("--profile", action="store_true", help="profile every cell (trace and summary per run folder)")
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )

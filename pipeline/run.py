@@ -107,7 +107,7 @@ def run_slam(
         sink.close()
     if slam.state.gaussians is None:
         raise UserError("no frame was processed")
-    metrics = _finish(config, dataset, folder, slam, sink.results, report, device, progress, start_at)
+    metrics = _finish(config, dataset, folder, slam, sink, report, device, progress)
     return RunResult(folder, metrics)
 
 
@@ -150,13 +150,13 @@ def _finish(
     dataset: Dataset,
     folder: RunFolder,
     slam: SplaTAM,
-    results: list[FrameResult],
+    sink: ResultSink,
     report: RuntimeReport,
     device: torch.device,
     progress: bool,
-    start_at: int,
 ) -> dict[str, Any]:
     """Write trajectory, map, checkpoint and metrics; evaluate unless the run was interrupted."""
+    results = sink.results
     state = slam.state
     assert state.gaussians is not None
     done = slam.frames_done
@@ -179,7 +179,7 @@ def _finish(
         "device": describe(device, config),
         "versions": versions(),
         "runtime": report.summary(),
-        "time": _timing(results, report),
+        "time": _timing(results, report, sink.arrivals),
         "ate": None,
         "render": None,
     }
@@ -201,7 +201,7 @@ def _finish(
     return metrics
 
 
-def _timing(results: list[FrameResult], report: RuntimeReport) -> dict[str, Any]:
+def _timing(results: list[FrameResult], report: RuntimeReport, arrivals: list[float]) -> dict[str, Any]:
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
     mean = {
         k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan
@@ -215,7 +215,15 @@ def _timing(results: list[FrameResult], report: RuntimeReport) -> dict[str, Any]
         "frames_timed": len(timed),
         "warmup_frames_excluded": WARMUP_FRAMES,
         "fps_wall": report.frames / report.wall_s if report.wall_s > 0 else 0.0,
+        "fps_steady": _steady_fps(arrivals),
     }
+
+
+def _steady_fps(arrivals: list[float]) -> float | None:
+    """Frames per second of wall time after the warm-up frames: what a long run sustains."""
+    if len(arrivals) <= WARMUP_FRAMES + 1:
+        return None
+    return (len(arrivals) - 1 - WARMUP_FRAMES) / (arrivals[-1] - arrivals[WARMUP_FRAMES])
 
 
 def _render_metrics(
@@ -287,7 +295,12 @@ def format_table(metrics: dict[str, Any]) -> str:
         ("tracking", f"{1000 * t['tracking_s']:.1f} ms/frame"),
         ("densify + keyframes", f"{1000 * t['densify_s']:.1f} ms/frame"),
         ("mapping", f"{1000 * t['mapping_s']:.1f} ms/frame"),
-        ("total", f"{1000 * t['total_s']:.1f} ms/frame ({t['fps_wall']:.2f} fps wall)"),
+        ("total", f"{1000 * t['total_s']:.1f} ms/frame"),
+        (
+            "throughput",
+            f"{t['fps_wall']:.2f} fps over the whole run"
+            + (f", {t['fps_steady']:.2f} after warm-up" if t["fps_steady"] else ""),
+        ),
         ("tracking lost", f"{metrics['lost_frames']} frames"),
     ]
     if "peak_gpu_memory_gb" in metrics:

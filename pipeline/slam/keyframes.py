@@ -31,11 +31,12 @@ class Keyframe:
 
 
 def sample_valid_pixels(depth: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
-    """Flat indices [<= count] of valid-depth pixels drawn without replacement."""
+    """Flat indices [count] of valid-depth pixels drawn uniformly with replacement (as SplaTAM);
+    empty when no pixel is valid."""
     valid = torch.nonzero(depth.reshape(-1) > 0)[:, 0]
-    if len(valid) <= count:
+    if len(valid) == 0:
         return valid
-    pick = torch.randperm(len(valid), generator=generator, device="cpu")[:count].to(valid.device)
+    pick = torch.randint(len(valid), (count,), generator=generator).to(valid.device)
     return valid[pick]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 from tqdm import tqdm
@@ -37,12 +38,14 @@ class ResultSink:
     def __init__(self, folder: RunFolder, total: int | None, initial: int = 0, progress: bool = True) -> None:
         self.folder = folder
         self.results: list[FrameResult] = []
+        self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
         self.bar = tqdm(
             total=total, initial=initial, unit="frame", desc="SLAM", disable=not progress, dynamic_ncols=True
         )
 
     def consume(self, result: FrameResult) -> None:
+        self.arrivals.append(time.perf_counter())
         self.results.append(result)
         self.folder.append_frames([frame_row(result)])
         if result.lost:
