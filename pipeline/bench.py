@@ -16,6 +16,7 @@ import torch
 
 from pipeline.config import Config, load_config, with_value
 from pipeline.devices import describe, resolve_device
+from pipeline.errors import UserError
 from pipeline.run import WARMUP_FRAMES, run_slam, versions
 
 log = logging.getLogger("gsplatam")
@@ -105,6 +106,8 @@ def run_matrix(
                 log.info("bench: %s", name)
                 config = cell_config(cell, base_overrides, runs, name)
                 metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+                if metrics is None:
+                    raise UserError("benchmark interrupted before its first frame")
                 rows.append(row_of(cell, metrics))
     add_ratios(rows)
     device = resolve_device("auto")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import NoReturn
@@ -111,6 +112,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = run_slam(
         config, resume=Path(args.resume) if args.resume else None, profile_trace=args.profile, progress=not args.quiet
     )
+    if result.metrics is None:
+        return 0
     print(format_table(result.metrics))
     print(f"outputs: {result.folder.path}/ (metrics.json, frames.csv, trajectory.txt, map.ply, checkpoint.pt)")
     return 0
@@ -149,7 +152,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
     out = Path(args.out)
     report = run_matrix(
-        args.sequences or ["synthetic"], presets, variants, args.overrides, Path(args.runs), not args.quiet
+        args.sequences or ["synthetic"],
+        presets,
+        variants,
+        args.overrides,
+        Path(args.runs),
+        not args.quiet,
+        args.profile,
     )
     json_path, md_path = write_report(report, out, args.stem)
     print(markdown(report))
@@ -164,8 +173,14 @@ def cmd_not_built(args: argparse.Namespace) -> int:
 COMMANDS = {"run": cmd_run, "synth": cmd_synth, "bench": cmd_bench, "serve": cmd_not_built, "view": cmd_not_built}
 
 
+def _terminate_as_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
+    # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
+    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     args = build_parser().parse_args(argv)
     try:
         return COMMANDS[args.command](args)

@@ -41,7 +41,7 @@ WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: c
 @dataclass
 class RunResult:
     folder: RunFolder
-    metrics: dict[str, Any]
+    metrics: dict[str, Any] | None  # None when interrupted before the first frame
 
 
 def prepare_dataset(config: Config, device: torch.device, output: Path, progress: bool) -> tuple[Dataset, Config]:
@@ -106,6 +106,9 @@ def run_slam(
     finally:
         sink.close()
     if slam.state.gaussians is None:
+        if report.interrupted:
+            log.info("interrupted before the first frame was processed: nothing to write")
+            return RunResult(folder, None)
         raise UserError("no frame was processed")
     metrics = _finish(config, dataset, folder, slam, sink, report, device, progress)
     return RunResult(folder, metrics)

@@ -34,7 +34,7 @@ async def dedicated_thread_stage(
     handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
     thread finishes the item in hand and takes no other."""
     loop = asyncio.get_running_loop()
-    handoff: queue.Queue[Any] = queue.Queue(maxsize=1)
+    handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
     finished: asyncio.Queue[Any] = asyncio.Queue()
     slots = asyncio.Semaphore(in_flight)
     halted = threading.Event()
@@ -59,11 +59,11 @@ async def dedicated_thread_stage(
             item = await inbox.get()
             if stop.is_set():
                 item = END
-            if not isinstance(item, EndOfStream):
-                await slots.acquire()
-            await asyncio.to_thread(handoff.put, item)
             if isinstance(item, EndOfStream):
+                handoff.put(item)
                 return
+            await slots.acquire()
+            handoff.put(item)
 
     thread = threading.Thread(target=work, name=f"{name}-worker", daemon=True)
     thread.start()
@@ -79,18 +79,6 @@ async def dedicated_thread_stage(
     finally:
         feeder.cancel()
         halted.set()
-        _wake(handoff)
+        handoff.put(END)  # wakes the worker if it waits for an item
         await asyncio.to_thread(thread.join)
     await outbox.put(END)
-
-
-def _wake(handoff: queue.Queue[Any]) -> None:
-    """Unblock the worker if it waits for an item (the feeder is gone)."""
-    try:
-        handoff.get_nowait()
-    except queue.Empty:
-        pass
-    try:
-        handoff.put_nowait(END)
-    except queue.Full:
-        pass
