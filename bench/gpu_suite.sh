@@ -21,14 +21,14 @@ for part in "$@"; do
                   bench "$tum" --presets base,tum --stem presets_slow_tum ;;
     presets-tum) bench synthetic --presets tum --stem presets_tum_synthetic ;;
     types) bench synthetic "$tum" --presets tiny --variants default,3d-anisotropic,2d-isotropic,2d-anisotropic --stem gaussian_types ;;
-    pipeline) bench synthetic --presets tiny --variants default,sync-loader --stem pipeline
-              bench synthetic --presets tiny --variants default,sync-loader --stem pipeline_profiled --profile
-              cp /tmp/runs/synthetic_tiny_default/profile.txt "$out/profile_pipelined.txt"
-              cp /tmp/runs/synthetic_tiny_sync-loader/profile.txt "$out/profile_sync.txt" ;;
+    pipeline) bench synthetic --presets tiny --variants default,sync-loader --stem pipeline ;;
     ablations) bench synthetic --presets tiny --variants default,no-compile,sync-loader,packed --stem ablations ;;
-    profile) python3 -m pipeline run --preset tiny --profile --quiet --output /tmp/profile --name tiny \
-               --set synthetic.frames=60 2>&1 | tail -n 3
-             cp /tmp/profile/tiny/profile.txt "$out/profile_tiny.txt" ;;
+    profile) for loader in pipelined sync; do  # 60 frames: the profiler slows every step
+               python3 -m pipeline run --preset tiny --profile --quiet --output /tmp/profile --name $loader \
+                 --set synthetic.frames=60 --loader $loader 2>&1 | tail -n 3
+               cp /tmp/profile/$loader/profile.txt "$out/profile_tiny_$loader.txt"
+               cp /tmp/profile/$loader/metrics.json "$out/profile_tiny_$loader.json"
+             done ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done
