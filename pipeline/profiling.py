@@ -9,7 +9,6 @@ from torch.autograd import DeviceType
 from torch.profiler import profile
 
 STAGES = ("decode", "upload", "slam_step", "tracking", "densify", "mapping")
-ANNOTATIONS = (*STAGES, "total")  # record_function ranges, which also appear on the device timeline
 
 
 def all_threads_config() -> Any:
@@ -22,25 +21,18 @@ def all_threads_config() -> Any:
         return None
 
 
-def kernel_busy(prof: profile) -> dict[str, float]:
-    """Union of kernel intervals on the device over the span from the first kernel to the last."""
-    spans = sorted(
-        (e.time_range.start, e.time_range.end)
-        for e in prof.events()
-        if e.device_type == DeviceType.CUDA and e.time_range.end > e.time_range.start
+def kernel_busy(prof: profile, wall_s: float) -> dict[str, float]:
+    """Device time spent in kernels and copies (user-annotation ranges excluded, as in the
+    profiler's own "Self CUDA time total") as a fraction of the run's wall time."""
+    busy_us = sum(
+        e.self_device_time_total
+        for e in prof.key_averages()
+        if e.device_type == DeviceType.CUDA and not e.is_user_annotation
     )
-    if not spans:
-        return {"kernel_busy_fraction": float("nan"), "kernel_wall_ms": 0.0}
-    busy, (current_start, current_end) = 0.0, spans[0]
-    for start, end in spans[1:]:
-        if start > current_end:
-            busy += current_end - current_start
-            current_start, current_end = start, end
-        else:
-            current_end = max(current_end, end)
-    busy += current_end - current_start
-    wall = spans[-1][1] - spans[0][0]
-    return {"kernel_busy_fraction": busy / wall, "kernel_wall_ms": wall / 1000.0, "kernel_busy_ms": busy / 1000.0}
+    return {
+        "kernel_busy_ms": busy_us / 1000.0,
+        "kernel_busy_fraction": busy_us / 1e6 / wall_s if wall_s > 0 else float("nan"),
+    }
 
 
 def stage_times(prof: profile) -> dict[str, dict[str, float]]:
@@ -56,10 +48,10 @@ def stage_times(prof: profile) -> dict[str, dict[str, float]]:
     return rows
 
 
-def summarise(prof: profile, cuda: bool) -> tuple[dict[str, Any], str]:
+def summarise(prof: profile, cuda: bool, wall_s: float) -> tuple[dict[str, Any], str]:
     summary: dict[str, Any] = {"stages": stage_times(prof)}
     if cuda:
-        summary.update(kernel_busy(prof))
+        summary.update(kernel_busy(prof, wall_s))
     sort_key = "device_time_total" if cuda else "cpu_time_total"
     table = prof.key_averages().table(sort_by=sort_key, row_limit=25)
     return summary, table

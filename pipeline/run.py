@@ -124,14 +124,15 @@ def _execute(
     with profile(activities=activities, experimental_config=all_threads_config()) as prof:
         report = execute(graph, config.run.loader)
     prof.export_chrome_trace(str(folder.path / "trace.json"))
-    summary, table = summarise(prof, cuda)
+    summary, table = summarise(prof, cuda, report.wall_s)
     report.profile = summary
     stages = "\n".join(
         f"  {name:<10} {v['count']:>5} calls  host {v['cpu_ms']:9.1f} ms  device {v['device_ms']:9.1f} ms"
         for name, v in summary["stages"].items()
     )
     busy = (
-        f"kernel busy fraction {summary['kernel_busy_fraction']:.3f} of {summary['kernel_wall_ms']:.0f} ms\n"
+        f"kernels and copies busy the GPU for {summary['kernel_busy_ms']:.0f} ms of {1000 * report.wall_s:.0f} ms wall "
+        f"({summary['kernel_busy_fraction']:.1%})\n"
         if cuda
         else ""
     )
