@@ -175,3 +175,48 @@ def test_flat_2d_gaussians_on_the_reference_backend() -> None:
     torch.testing.assert_close(
         out.silhouette, render_reference(g_thin, Camera(torch.eye(4), K, 80, 60)).silhouette, atol=1e-4, rtol=0
     )
+
+
+def test_gsplat_backend_calls_match_the_installed_gsplat(monkeypatch) -> None:
+    """Without a GPU: the CUDA backend's calls, checked against the installed gsplat's
+    signatures (read from its source, never imported: importing it here would start a CUDA
+    compile) and against the contract (one RGB+ED pass, classic compositing for 3D)."""
+    import ast
+    import importlib.util
+    import sys
+    import types
+    from pathlib import Path
+
+    spec = importlib.util.find_spec("gsplat")
+    assert spec is not None and spec.origin is not None
+    tree = ast.parse((Path(spec.origin).parent / "rendering.py").read_text())
+    accepted = {
+        f.name: {a.arg for a in f.args.args + f.args.kwonlyargs} for f in tree.body if isinstance(f, ast.FunctionDef)
+    }
+    calls: dict[str, dict] = {}
+
+    def fake(name: str, extra: int):
+        def rasterise(**kwargs):
+            calls[name] = kwargs
+            n, h, w = kwargs["means"].shape[0], kwargs["height"], kwargs["width"]
+            image = torch.arange(h * w * 4, dtype=torch.float32).reshape(1, h, w, 4)
+            return (image, torch.ones(1, h, w, 1), *([None] * extra), {"radii": torch.ones(1, n, 2, dtype=torch.int32)})
+
+        return rasterise
+
+    module = types.ModuleType("gsplat")
+    module.rasterization = fake("rasterization", 0)
+    module.rasterization_2dgs = fake("rasterization_2dgs", 4)
+    monkeypatch.setitem(sys.modules, "gsplat", module)
+    monkeypatch.delitem(sys.modules, "pipeline.render.gsplat_backend", raising=False)
+    from pipeline.render.gsplat_backend import render_gsplat_2d, render_gsplat_3d
+
+    g = gaussians_at([(0.0, 0.0, 2.0)] * 3, [(1.0, 0.0, 0.0)] * 3)
+    out = render_gsplat_3d(g, Camera(torch.eye(4), K, 8, 6))
+    render_gsplat_2d(g, Camera(torch.eye(4), K, 8, 6))
+    for name, kwargs in calls.items():
+        assert set(kwargs) <= accepted[name], set(kwargs) - accepted[name]
+        assert kwargs["render_mode"] == "RGB+ED" and kwargs["viewmats"].shape == (1, 4, 4)
+    assert calls["rasterization"]["rasterize_mode"] == "classic"
+    assert calls["rasterization_2dgs"]["colors"].shape == (1, 3, 3)
+    assert out.color.shape == (6, 8, 3) and out.depth[0, 0].item() == 3.0 and out.visible.all()

@@ -5,21 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pipeline.errors import DataError
+from pipeline.geometry import quat_to_rotmat
 
 
 def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
-    """[..., 4] quaternions (x, y, z, w), any norm -> [..., 3, 3] rotation matrices."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return np.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
+    """[..., 4] quaternions (x, y, z, w), any norm -> [..., 3, 3] rotation matrices (float64)."""
+    wxyz = torch.from_numpy(np.asarray(q, dtype=np.float64)[..., [3, 0, 1, 2]])
+    return quat_to_rotmat(wxyz).numpy()
 
 
 def matrix_to_quat_xyzw(rotation: np.ndarray) -> np.ndarray:

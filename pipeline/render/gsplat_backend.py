@@ -15,6 +15,8 @@ Choices (measured in bench/results/rendering.md):
 
 from __future__ import annotations
 
+from typing import Any
+
 import gsplat
 import torch
 
@@ -34,23 +36,28 @@ def _radii_per_gaussian(meta: dict, n: int, packed: bool) -> torch.Tensor:
     return full
 
 
+def _arguments(gaussians: Gaussians, camera: Camera, eps2d: float, packed: bool) -> dict[str, Any]:
+    """What both gsplat rasterisers take, one camera, colour plus expected depth."""
+    return {
+        "means": gaussians.means,
+        "quats": gaussians.quats,
+        "scales": gaussians.scales(),
+        "opacities": torch.sigmoid(gaussians.opacity_logits),
+        "viewmats": camera.w2c[None],
+        "Ks": camera.intrinsics[None],
+        "width": camera.width,
+        "height": camera.height,
+        "near_plane": camera.near,
+        "far_plane": camera.far,
+        "eps2d": eps2d,
+        "packed": packed,
+        "render_mode": "RGB+ED",
+    }
+
+
 def render_gsplat_3d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, packed: bool = False) -> RenderOutput:
     colors, alphas, meta = gsplat.rasterization(
-        means=gaussians.means,
-        quats=gaussians.quats,
-        scales=gaussians.scales(),
-        opacities=torch.sigmoid(gaussians.opacity_logits),
-        colors=gaussians.colors,
-        viewmats=camera.w2c[None],
-        Ks=camera.intrinsics[None],
-        width=camera.width,
-        height=camera.height,
-        near_plane=camera.near,
-        far_plane=camera.far,
-        eps2d=eps2d,
-        packed=packed,
-        render_mode="RGB+ED",
-        rasterize_mode="classic",
+        colors=gaussians.colors, rasterize_mode="classic", **_arguments(gaussians, camera, eps2d, packed)
     )
     radii = _radii_per_gaussian(meta, len(gaussians), packed)
     return _output(colors, alphas, radii, len(gaussians))
@@ -63,20 +70,7 @@ def render_gsplat_2d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, p
     channel to unbatched [N, 3] colours.
     """
     colors, alphas, *_, meta = gsplat.rasterization_2dgs(
-        means=gaussians.means,
-        quats=gaussians.quats,
-        scales=gaussians.scales(),
-        opacities=torch.sigmoid(gaussians.opacity_logits),
-        colors=gaussians.colors[None],
-        viewmats=camera.w2c[None],
-        Ks=camera.intrinsics[None],
-        width=camera.width,
-        height=camera.height,
-        near_plane=camera.near,
-        far_plane=camera.far,
-        eps2d=eps2d,
-        packed=packed,
-        render_mode="RGB+ED",
+        colors=gaussians.colors[None], **_arguments(gaussians, camera, eps2d, packed)
     )
     radii = _radii_per_gaussian(meta, len(gaussians), packed)
     return _output(colors, alphas, radii, len(gaussians))
