@@ -137,3 +137,32 @@ def test_sigterm_finishes_the_frame_and_writes_the_run_folder(tmp_path: Path) ->
     assert metrics["interrupted"] is True and 2 <= metrics["frames"] < 60
     assert (out / "s" / "map.ply").exists() and (out / "s" / "checkpoint.pt").exists()
     assert len(read_tum_trajectory(out / "s" / "trajectory.txt")[0]) == metrics["frames"]
+
+
+def test_bench_writes_its_table_and_json(tmp_path: Path, capsys) -> None:
+    """The benchmark harness at CPU size: the output schema, not the timings."""
+    sizes = ["--set", "synthetic.frames=3", "--set", "synthetic.width=48", "--set", "synthetic.height=32"]
+    argv = ["bench", "--presets", "tiny", "--variants", "default,3d-anisotropic", "--out", str(tmp_path / "res")]
+    assert main(argv + ["--runs", str(tmp_path / "runs"), "--stem", "b", "--quiet", *sizes]) == 0
+    report = json.loads((tmp_path / "res" / "b.json").read_text())
+    assert {"device", "driver", "versions", "overrides", "profiled", "rows"} <= set(report)
+    assert {"torch", "gsplat", "cuda", "commit", "python"} <= set(report["versions"])
+    rows = report["rows"]
+    assert [r["variant"] for r in rows] == ["default", "3d-anisotropic"]
+    expected = {
+        "tracking_ms",
+        "densify_ms",
+        "mapping_ms",
+        "total_ms",
+        "fps_steady",
+        "gaussians",
+        "ate_rmse_cm",
+        "psnr_db",
+        "depth_l1_cm",
+        "total_ms_ratio",
+    }
+    assert all(expected <= set(r) for r in rows)
+    assert rows[0]["total_ms_ratio"] == 1.0 and rows[0]["frames"] == 3
+    table = (tmp_path / "res" / "b.md").read_text()
+    assert "| sequence | preset | variant |" in table and table.count("\n| room_") == 2
+    assert main(["bench", "--variants", "fast"]) == 2

@@ -206,3 +206,43 @@ def test_separable_ssim_matches_a_direct_2d_window() -> None:
     sx, sy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
     direct = (((2 * mx * my + 1e-4) * (2 * sxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (sx + sy + 9e-4))).mean(1)[0]
     torch.testing.assert_close(ssim_map(a, b), direct, atol=1e-5, rtol=0)
+
+
+def test_lost_tracking_is_reported_not_silent(replica_seq) -> None:
+    """A frame that does not fit the map (another scene's colour, depth doubled) after a few good
+    ones: the tracking loss explodes and the result says so; an impossible jump bound flags too."""
+    config = with_dataset_defaults(load_config("tiny", overrides=["mapping.iters=2"]), "replica")
+    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
+    frames = [host_frame_tensors(f) for f in dataset.frames()]
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+    healthy = [slam.step(f) for f in frames[:6]]
+    assert all(not r.lost for r in healthy)
+    bad = frames[5]
+    garbage = type(bad)(
+        6,
+        0.2,
+        torch.rand(bad.color.shape, generator=torch.Generator().manual_seed(0)),
+        bad.depth * 2,
+        bad.intrinsics,
+        None,
+    )
+    result = slam.step(garbage)
+    assert "over 10x its running median" in result.lost
+
+    jumpy = with_dataset_defaults(load_config("tiny", overrides=["tracking.lost_translation_m=1e-9"]), "replica")
+    slam = SplaTAM(jumpy, make_renderer(jumpy.render, jumpy.gaussians, CPU), CPU)
+    slam.step(frames[0])
+    assert slam.step(frames[1]).lost.startswith("pose jumped")
+
+
+def test_synthetic_scenes_are_deterministic_per_seed() -> None:
+    from pipeline.config import SyntheticConfig
+    from pipeline.synthetic import sequence
+
+    def first_frame(seed: int):
+        _, frames = sequence(SyntheticConfig(frames=2, width=32, height=24, seed=seed))
+        return next(frames)
+
+    a, b, c = first_frame(1), first_frame(1), first_frame(2)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(a[0], c[0])
