@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-base presets-tum types pipeline ablations profile
+#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-base presets-tum types pipeline ablations profile memory
 set -uo pipefail
 out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
 shift
@@ -16,10 +16,11 @@ for part in "$@"; do
   echo "== $part"
   case $part in
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
-    presets-fast) bench synthetic "$tum" --presets tiny,small --stem presets_fast ;;
+    presets-fast) bench synthetic synthetic-tum "$tum" --presets tiny,small --stem presets_fast ;;
     presets-base) bench synthetic --presets base --stem presets_base_synthetic
                   bench "$tum" --presets base,tum --stem presets_slow_tum ;;
-    presets-tum) bench synthetic --presets tum --stem presets_tum_synthetic ;;
+    presets-tum) bench synthetic synthetic-tum --presets tum --stem presets_tum_synthetic ;;
+    memory) bench synthetic --presets tiny --set synthetic.frames=2000 --stem memory_2000 ;;
     types) bench synthetic "$tum" --presets tiny --variants default,3d-anisotropic,2d-isotropic,2d-anisotropic --stem gaussian_types ;;
     pipeline) bench synthetic --presets tiny --variants default,sync-loader --stem pipeline ;;
     ablations) bench synthetic --presets tiny --variants default,no-compile,sync-loader,packed --stem ablations ;;

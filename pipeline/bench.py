@@ -33,16 +33,27 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
 }
 
 
+# Generated sequences by name; any other sequence is a dataset folder.
+SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
+    "synthetic": (),  # the Replica-like room, 1200x680 on a GPU
+    "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
+        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",
+        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
+    ),
+}  # fmt: skip
+
+
 @dataclass(frozen=True)
 class Cell:
-    sequence: str  # a dataset folder, or "synthetic"
+    sequence: str  # a dataset folder, or a name in SYNTHETIC_SEQUENCES
     preset: str
     variant: str = "default"
 
 
 def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
-    config = load_config(cell.preset, overrides=base_overrides + list(ABLATIONS[cell.variant]))
-    if cell.sequence != "synthetic":
+    generated = list(SYNTHETIC_SEQUENCES.get(cell.sequence, ()))
+    config = load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]))
+    if cell.sequence not in SYNTHETIC_SEQUENCES:
         config = with_value(config, "dataset.path", cell.sequence)
     config = with_value(config, "run.output", str(output))
     return with_value(config, "run.name", run_name)

@@ -131,10 +131,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
         speed=args.speed,
         jitter=args.jitter,
         fps=args.fps,
+        layout=args.layout,
+        depth_noise=args.depth_noise,
+        holes=args.holes,
+        time_jitter=args.time_jitter,
     )
-    count = write_synthetic(
-        Path(args.out), config, args.layout, args.depth_noise, args.holes, args.time_jitter, not args.quiet
-    )
+    count = write_synthetic(Path(args.out), config, not args.quiet)
     print(f"wrote {count} frames ({args.width}x{args.height}, {args.layout} layout) to {args.out}")
     return 0
 

@@ -45,6 +45,10 @@ class SyntheticConfig:
     speed: float = 0.3  # metres per second along the path
     jitter: float = 0.01  # metres (and radians x 0.5) of hand-held shake
     fps: float = 30.0
+    layout: DatasetFormat = "replica"  # replica or tum
+    depth_noise: float = 0.0  # TUM layout only: depth noise std = depth_noise x depth^2, metres
+    holes: float = 0.0  # TUM layout only: fraction of depth pixels zeroed, in blobs
+    time_jitter: float = 0.0  # TUM layout only: depth and pose timestamp offsets up to this, seconds
 
 
 @dataclass(frozen=True)

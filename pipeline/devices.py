@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from pipeline.config import Config, SyntheticConfig
@@ -26,15 +28,7 @@ def resolve_device(name: str) -> torch.device:
 def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticConfig:
     """Fill the sizes left at 0 for `device`."""
     width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
-    return SyntheticConfig(
-        frames=config.frames or frames,
-        width=config.width or width,
-        height=config.height or height,
-        seed=config.seed,
-        speed=config.speed,
-        jitter=config.jitter,
-        fps=config.fps,
-    )
+    return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)
 
 
 def default_preset(device: torch.device) -> str:

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -17,14 +18,14 @@ SMALL_SYNTH = SyntheticConfig(frames=6, width=64, height=48, seed=3)
 @pytest.fixture(scope="session")
 def replica_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("replica") / "room"
-    write_synthetic(path, SMALL_SYNTH, "replica", progress=False)
+    write_synthetic(path, SMALL_SYNTH, progress=False)
     return path
 
 
 @pytest.fixture(scope="session")
 def tum_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("tum") / "room"
-    write_synthetic(path, SMALL_SYNTH, "tum", progress=False)
+    write_synthetic(path, replace(SMALL_SYNTH, layout="tum"), progress=False)
     return path
 
 

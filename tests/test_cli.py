@@ -166,3 +166,22 @@ def test_bench_writes_its_table_and_json(tmp_path: Path, capsys) -> None:
     table = (tmp_path / "res" / "b.md").read_text()
     assert "| sequence | preset | variant |" in table and table.count("\n| room_") == 2
     assert main(["bench", "--variants", "fast"]) == 2
+
+
+def test_bench_generates_the_tum_like_sequence(tmp_path: Path) -> None:
+    sizes = ["--set", "synthetic.frames=3", "--set", "synthetic.width=48", "--set", "synthetic.height=32"]
+    argv = [
+        "bench",
+        "synthetic-tum",
+        "--presets",
+        "tiny",
+        "--out",
+        str(tmp_path / "res"),
+        "--runs",
+        str(tmp_path / "runs"),
+    ]
+    assert main(argv + ["--stem", "t", "--quiet", *sizes]) == 0
+    (row,) = json.loads((tmp_path / "res" / "t.json").read_text())["rows"]
+    assert "_tum_n0.0015_h0.02" in row["sequence"] and row["frames"] == 3
+    generated = next((tmp_path / "runs" / "synthetic").iterdir())
+    assert (generated / "rgb.txt").exists() and (generated / "groundtruth.txt").exists()

@@ -22,49 +22,35 @@ def _with_progress(frames: Iterator, total: int, progress: bool) -> Iterator:
     yield from tqdm(frames, total=total, unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
 
 
-def write_synthetic(
-    path: Path,
-    config: SyntheticConfig,
-    layout: str = "replica",
-    depth_noise: float = 0.0,
-    hole_fraction: float = 0.0,
-    time_jitter: float = 0.0,
-    progress: bool = True,
-) -> int:
-    """Generate `config.frames` frames and write them under `path`; -> frames written.
-
-    A manifest records the parameters, so an existing folder is reused only when it matches.
-    """
+def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True) -> int:
+    """Generate `config.frames` frames and write them under `path` in `config.layout`; -> frames
+    written. A manifest records the parameters, so a cached folder is reused only when it matches."""
     if config.frames <= 0 or config.width <= 0 or config.height <= 0:
         raise UserError("synthetic frames, width and height must be positive")
-    if layout not in ("replica", "tum"):
-        raise UserError(f"unknown layout '{layout}' (choose replica or tum)")
-    if layout == "replica" and (depth_noise or hole_fraction or time_jitter):
+    if config.layout not in ("replica", "tum"):
+        raise UserError(f"unknown layout '{config.layout}' (choose replica or tum)")
+    if config.layout == "replica" and (config.depth_noise or config.holes or config.time_jitter):
         raise UserError("depth noise, holes and timestamp jitter apply to the TUM layout only")
     intrinsics, frames = sequence(config)
     frames = _with_progress(frames, config.frames, progress)
-    if layout == "replica":
+    if config.layout == "replica":
         count = write_replica(path, frames, intrinsics)
     else:
-        count = write_tum(path, frames, intrinsics, config.fps, depth_noise, hole_fraction, time_jitter, config.seed)
-    manifest = {
-        "layout": layout,
-        **asdict(config),
-        "depth_noise": depth_noise,
-        "holes": hole_fraction,
-        "time_jitter": time_jitter,
-    }
-    (path / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+        count = write_tum(
+            path, frames, intrinsics, config.fps, config.depth_noise, config.holes, config.time_jitter, config.seed
+        )
+    (path / MANIFEST).write_text(json.dumps(asdict(config), indent=2) + "\n")
     return count
 
 
 def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True) -> Path:
-    """The folder of the synthetic sequence for `config` (Replica layout), generated on first use."""
+    """The folder of the synthetic sequence for `config`, generated on first use."""
     key = f"room_s{config.seed}_{config.width}x{config.height}_{config.frames}f_v{config.speed:g}_j{config.jitter:g}"
+    if config.layout == "tum":
+        key += f"_tum_n{config.depth_noise:g}_h{config.holes:g}_t{config.time_jitter:g}"
     path = root / key
     manifest = path / MANIFEST
-    expected = {"layout": "replica", **asdict(config), "depth_noise": 0.0, "holes": 0.0, "time_jitter": 0.0}
-    if manifest.exists() and json.loads(manifest.read_text()) == json.loads(json.dumps(expected)):
+    if manifest.exists() and json.loads(manifest.read_text()) == json.loads(json.dumps(asdict(config))):
         return path
     write_synthetic(path, config, progress=progress)
     return path
