@@ -6,7 +6,6 @@ validated, written into the run folder and never mutated afterwards.
 
 from __future__ import annotations
 
-import dataclasses
 import tomllib
 import typing
 from dataclasses import dataclass, field, fields, is_dataclass, replace
@@ -307,10 +306,6 @@ def validate(config: Config) -> None:
     for ok, message in checks:
         if not ok:
             raise UserError(message)
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    return dataclasses.asdict(config)
 
 
 def to_toml(config: Config) -> str:

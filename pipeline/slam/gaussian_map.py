@@ -60,10 +60,6 @@ def concatenate(a: Gaussians, b: Gaussians) -> Gaussians:
     return Gaussians(*(torch.cat([getattr(a, n).detach(), getattr(b, n).detach()]) for n in PARAMETER_NAMES))
 
 
-def select(gaussians: Gaussians, keep: torch.Tensor) -> Gaussians:
-    return Gaussians(*(getattr(gaussians, name).detach()[keep] for name in PARAMETER_NAMES))
-
-
 def prune_mask(gaussians: Gaussians, min_opacity: float, max_scale: float) -> torch.Tensor:
     """[N] bool of the Gaussians to keep: opacity >= min_opacity and largest scale <= max_scale."""
     opacity = torch.sigmoid(gaussians.opacity_logits)

@@ -41,6 +41,3 @@ class StageQueue(Generic[T]):
 
     async def get(self) -> T | EndOfStream:
         return await self._queue.get()
-
-    def qsize(self) -> int:
-        return self._queue.qsize()
