@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from pipeline.frame import DeviceFrame
+from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.losses import psnr, ssim_map
 
@@ -59,7 +60,7 @@ def view_quality(
     renderer: Renderer, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor, near: float, far: float
 ) -> ViewQuality:
     """Render at the estimated pose and compare with the input over valid-depth pixels."""
-    camera = Camera(torch.linalg.inv(c2w), frame.intrinsics, frame.width, frame.height, near, far)
+    camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, near, far)
     out = renderer(gaussians, camera)
     valid = frame.depth > 0
     if not bool(valid.any()):

@@ -7,6 +7,7 @@ import random
 import torch
 
 from pipeline.config import LossConfig, MappingConfig
+from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, prune_mask
 from pipeline.slam.kernels import EAGER, SlamKernels
@@ -62,7 +63,7 @@ def map_window(
         fused=params.means.is_cuda,
     )
     height, width = views[0].depth.shape
-    cameras = [Camera(torch.linalg.inv(v.c2w), intrinsics, width, height, near, far) for v in views]
+    cameras = [Camera(invert_pose(v.c2w), intrinsics, width, height, near, far) for v in views]
     for step in range(config.iters):
         if step in config.prune_at:
             with torch.no_grad():

@@ -10,7 +10,7 @@ import torch
 
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import constant_velocity
+from pipeline.geometry import constant_velocity, invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, detached, seed_gaussians
@@ -121,7 +121,7 @@ class SplaTAM:
         """Add Gaussians where the map at the tracked pose misses the frame; -> Gaussians added."""
         state, render = self.state, self.config.render
         assert state.gaussians is not None
-        camera = Camera(torch.linalg.inv(c2w), frame.intrinsics, frame.width, frame.height, render.near, render.far)
+        camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, render.near, render.far)
         with torch.no_grad():
             out = self.renderer(state.gaussians, camera)
             mask = densify_mask(out.silhouette, out.depth, frame.depth, self.config.densify)
