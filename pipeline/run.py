@@ -7,6 +7,7 @@ import math
 import os
 import platform
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -20,7 +21,7 @@ from tqdm import tqdm
 from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device, synthetic_for
 from pipeline.errors import UserError
-from pipeline.io.dataset import Dataset, FrameRef, open_dataset
+from pipeline.io.dataset import Dataset, open_dataset
 from pipeline.io.run_folder import RunFolder
 from pipeline.io.synth_writer import cached_synthetic
 from pipeline.metrics import absolute_trajectory_error, view_quality
@@ -56,14 +57,10 @@ def prepare_dataset(config: Config, device: torch.device, output: Path, progress
     return dataset, with_dataset_defaults(config, dataset.format)
 
 
-def _decode_with_range(dataset: Dataset, ref: FrameRef):
-    with record_function("decode"):
-        return dataset.decode(ref)
-
-
-def _upload_with_range(uploader, frame):
-    with record_function("upload"):
-        return uploader(frame)
+def _in_range(name: str, fn: Callable[[Any], Any], item: Any) -> Any:
+    """`fn(item)` inside a named profiler range (the stage's name in traces)."""
+    with record_function(name):
+        return fn(item)
 
 
 def run_slam(
@@ -95,8 +92,8 @@ def run_slam(
     graph = Graph(
         source=DatasetSource(dataset, start_at),
         source_policy=DatasetSource.policy,
-        decode=partial(_decode_with_range, dataset),
-        upload=partial(_upload_with_range, uploader),
+        decode=partial(_in_range, "decode", dataset.decode),
+        upload=partial(_in_range, "upload", uploader),
         slam=SlamStep(slam, last_index=len(dataset) - 1),
         sink=sink,
         queue_size=config.run.queue_size,
