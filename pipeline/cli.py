@@ -72,8 +72,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
     bench.add_argument("--quiet", action="store_true")
-    serve = sub.add_parser("serve", help="live daemon fed by Record3D or NeRFCapture (not built yet)")
-    serve.add_argument("rest", nargs=argparse.REMAINDER)
+    serve = sub.add_parser("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
+    live = serve.add_mutually_exclusive_group(required=True)
+    live.add_argument("--record3d", metavar="URL", help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20")
+    _add_config_options(serve)
+    serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
+
+    fake = sub.add_parser("fake-record3d", help="a fake Record3D phone streaming a dataset (for tests and demos)")
+    fake.add_argument("--dataset", help="dataset folder (default: the generated synthetic room)")
+    fake.add_argument("--host", default="127.0.0.1", help="address to serve on (default: 127.0.0.1)")
+    fake.add_argument("--port", type=int, default=8080, help="HTTP port (the real app uses 80)")
+    fake.add_argument("--fps", type=float, default=30.0, help="frame rate of the stream")
+    fake.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
+    fake.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
+    fake.add_argument("--quiet", action="store_true")
     view = sub.add_parser("view", help="web viewer for a run folder or PLY (not built yet)")
     view.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
@@ -168,11 +180,76 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    from pipeline.devices import live_max_width, resolve_device
+    from pipeline.io.record3d import Record3DDecoder, Record3DSource
+    from pipeline.serve import LiveInput, serve
+
+    config = _config_from(args)
+    source = Record3DSource(args.record3d, config.live)
+    size = (config.live.width, config.live.height) if config.live.width else None
+    decoder = Record3DDecoder(source.counters, size, live_max_width(resolve_device(config.run.device)))
+    live = LiveInput("record3d", source, source.policy, decoder, source.counters)
+    log.info("serving: %s -> SLAM; Ctrl-C saves and stops", source.url)
+    result = serve(config, live, progress=not args.quiet)
+    if result.metrics is not None:
+        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians: {result.folder.path}/")
+    return 0
+
+
+# The default scene of the fake phone: 256x192 is the iPhone LiDAR's depth resolution; 10 s at 30 fps.
+FAKE_PHONE_SCENE_SIZE = (256, 192, 300)
+
+
+def cmd_fake_record3d(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from pipeline.config import DatasetConfig
+    from pipeline.io.dataset import open_dataset
+    from pipeline.io.fake_record3d import FakePhone
+    from pipeline.io.synth_writer import cached_synthetic
+
+    path = args.dataset
+    if not path:
+        from pipeline.config import SyntheticConfig
+
+        width, height, frames = FAKE_PHONE_SCENE_SIZE
+        scene = SyntheticConfig(frames=frames, width=width, height=height)
+        path = str(cached_synthetic(Path(args.output) / "synthetic", scene, not args.quiet))
+    dataset = open_dataset(DatasetConfig(path=path))
+
+    async def main() -> None:
+        phone = FakePhone(dataset, args.fps, args.loop)
+        port = await phone.start(args.host, args.port)
+        log.info(
+            "fake Record3D phone: http://%s:%d (%s, %d frames at %g fps)",
+            args.host,
+            port,
+            dataset.name,
+            len(dataset),
+            args.fps,
+        )
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await phone.stop()
+
+    asyncio.run(main())
+    return 0
+
+
 def cmd_not_built(args: argparse.Namespace) -> int:
     raise UserError(f"'{args.command}' is not built yet in this version")
 
 
-COMMANDS = {"run": cmd_run, "synth": cmd_synth, "bench": cmd_bench, "serve": cmd_not_built, "view": cmd_not_built}
+COMMANDS = {
+    "run": cmd_run,
+    "synth": cmd_synth,
+    "bench": cmd_bench,
+    "serve": cmd_serve,
+    "fake-record3d": cmd_fake_record3d,
+    "view": cmd_not_built,
+}
 
 
 def _terminate_as_interrupt(signum: int, frame: object) -> None:
@@ -181,6 +258,8 @@ def _terminate_as_interrupt(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
+    for chatty in ("aioice", "aiortc"):  # per-candidate ICE logs at INFO
+        logging.getLogger(chatty).setLevel(logging.WARNING)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     args = build_parser().parse_args(argv)

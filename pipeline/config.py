@@ -121,6 +121,25 @@ class RunConfig:
     seed: int = 0
 
 
+PoseUse = Literal["initial_guess", "groundtruth", "ignore"]
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """The `serve` daemon and its live sources."""
+
+    width: int = 0  # SLAM's working size; 0: the first frame's (later frames are resized to it)
+    height: int = 0
+    save_every_s: float = 60.0  # map, trajectory and checkpoint written this often (and at exit)
+    status_host: str = "127.0.0.1"
+    status_port: int = 8765  # JSON status at http://status_host:status_port/status; 0: off
+    retry_initial_s: float = 1.0  # back-off after a failed connection, doubling up to retry_max_s
+    retry_max_s: float = 30.0
+    connect_timeout_s: float = 10.0  # signalling to first frame
+    stall_timeout_s: float = 5.0  # no frame for this long: the phone is gone, reconnect
+    device_pose: PoseUse = "initial_guess"  # NeRFCapture: what the phone's pose is used for
+
+
 @dataclass(frozen=True)
 class Config:
     preset: str = "base"
@@ -134,6 +153,7 @@ class Config:
     gaussians: GaussianConfig = field(default_factory=GaussianConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
 
 
 # tracking iters / mapping iters / mapping window / keyframe every
@@ -302,6 +322,10 @@ def validate(config: Config) -> None:
         (config.run.device in ("auto", "cpu", "cuda"), "run.device must be auto, cpu or cuda"),
         (0.0 <= config.render.eps2d, "render.eps2d must be >= 0"),
         (0.0 < config.render.near < config.render.far, "need 0 < render.near < render.far"),
+        ((config.live.width > 0) == (config.live.height > 0), "set both live.width and live.height"),
+        (config.live.save_every_s > 0, "live.save_every_s must be > 0"),
+        (0 < config.live.retry_initial_s <= config.live.retry_max_s, "need 0 < live.retry_initial_s <= retry_max_s"),
+        (config.live.connect_timeout_s > 0 and config.live.stall_timeout_s > 0, "live timeouts must be > 0"),
     ]
     for ok, message in checks:
         if not ok:

@@ -13,6 +13,7 @@ from pipeline.errors import UserError
 SYNTHETIC_GPU = (1200, 680, 200)
 SYNTHETIC_CPU = (128, 96, 20)
 DEFAULT_PRESET_CPU = "tiny"
+LIVE_MAX_WIDTH_CPU = 128  # live frames are halved to this width for CPU runs (0: full size on a GPU)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -29,6 +30,10 @@ def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticCon
     """Fill the sizes left at 0 for `device`."""
     width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
     return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)
+
+
+def live_max_width(device: torch.device) -> int:
+    return 0 if device.type == "cuda" else LIVE_MAX_WIDTH_CPU
 
 
 def default_preset(device: torch.device) -> str:

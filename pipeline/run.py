@@ -57,7 +57,7 @@ def prepare_dataset(config: Config, device: torch.device, output: Path, progress
     return dataset, with_dataset_defaults(config, dataset.format)
 
 
-def _in_range(name: str, fn: Callable[[Any], Any], item: Any) -> Any:
+def in_profiler_range(name: str, fn: Callable[[Any], Any], item: Any) -> Any:
     """`fn(item)` inside a named profiler range (the stage's name in traces)."""
     with record_function(name):
         return fn(item)
@@ -92,8 +92,8 @@ def run_slam(
     graph = Graph(
         source=DatasetSource(dataset, start_at),
         source_policy=DatasetSource.policy,
-        decode=partial(_in_range, "decode", dataset.decode),
-        upload=partial(_in_range, "upload", uploader),
+        decode=partial(in_profiler_range, "decode", dataset.decode),
+        upload=partial(in_profiler_range, "upload", uploader),
         slam=SlamStep(slam, last_index=len(dataset) - 1),
         sink=sink,
         queue_size=config.run.queue_size,
@@ -162,12 +162,11 @@ def _finish(
     assert state.gaussians is not None
     done = slam.frames_done
     refs = dataset.refs[:done]
-    estimated = torch.stack(state.poses).cpu().double().numpy()
     timestamps = np.array([r.timestamp for r in refs])
     reference = np.stack([r.c2w_gt for r in refs]) if all(r.c2w_gt is not None for r in refs) else None
-    folder.write_trajectories(timestamps, estimated, reference)
-    folder.write_map(state.gaussians)
-    folder.write_checkpoint({"slam": slam.state_dict(), "frames_done": done})
+    saved = slam.state_dict()
+    folder.write_state(saved, timestamps, reference)
+    estimated = saved["poses"].double().numpy()
 
     metrics: dict[str, Any] = {
         "dataset": dataset.name,
@@ -180,7 +179,7 @@ def _finish(
         "device": describe(device, config),
         "versions": versions(),
         "runtime": report.summary(),
-        "time": _timing(results, report, sink.arrivals),
+        "time": timing_summary(results, report, sink.arrivals),
         "ate": None,
         "render": None,
     }
@@ -202,7 +201,7 @@ def _finish(
     return metrics
 
 
-def _timing(results: list[FrameResult], report: RuntimeReport, arrivals: list[float]) -> dict[str, Any]:
+def timing_summary(results: list[FrameResult], report: RuntimeReport, arrivals: list[float]) -> dict[str, Any]:
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
     mean = {
         k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan

@@ -9,10 +9,11 @@ loop kept for comparison.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 import threading
 import time
-from collections.abc import AsyncIterable, Callable
+from collections.abc import AsyncIterable, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -76,6 +77,8 @@ class Graph:
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
+    services: list[Callable[[], Coroutine[Any, Any, None]]] = field(default_factory=list)  # run beside the graph
+    queues: dict[str, StageQueue[Any]] = field(default_factory=dict)  # filled by run_graph, for live status
 
 
 def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
@@ -88,14 +91,26 @@ def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, st
     return report
 
 
-async def _feed(source: AsyncIterable[Any], outbox: StageQueue[Any], stop: asyncio.Event) -> None:
+async def _pump(source: AsyncIterable[Any], outbox: StageQueue[Any]) -> None:
     try:
         async for item in source:
-            if stop.is_set():
-                break
             await outbox.put(item)
     except Exception as exc:
         raise StageFailure("source", None, exc) from exc
+
+
+async def _feed(source: AsyncIterable[Any], outbox: StageQueue[Any], stop: asyncio.Event) -> None:
+    """Move the source's items into `outbox` until it ends or `stop` is set, then END. A live
+    source may wait for input forever: `stop` cancels that wait."""
+    pump = asyncio.create_task(_pump(source, outbox))
+    halt = asyncio.create_task(stop.wait())
+    try:
+        await asyncio.wait({pump, halt}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        halt.cancel()
+        pump.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await pump
     await outbox.put(END)
 
 
@@ -108,6 +123,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     frames: StageQueue[Any] = StageQueue(q)
     uploaded: StageQueue[Any] = StageQueue(q)
     results: StageQueue[Any] = StageQueue(4 * q)
+    graph.queues.update(source=refs, decoded=frames, uploaded=uploaded, results=results)
     stats = [StageStats("decode"), StageStats("upload"), StageStats("slam")]
     pools = [
         ThreadPoolExecutor(graph.decode_workers, thread_name_prefix="decode"),
@@ -123,6 +139,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             ]
             slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
             group.create_task(graph.sink.drain(results))
+            upstream += [group.create_task(service()) for service in graph.services]
             await slam
             for task in upstream:
                 task.cancel()
@@ -133,10 +150,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             pool.shutdown(wait=True, cancel_futures=True)
     wall = time.perf_counter() - start
     report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
-    report.queues = {
-        name: {"max_depth": queue.max_depth, "dropped": queue.dropped}
-        for name, queue in (("source", refs), ("decoded", frames), ("uploaded", uploaded), ("results", results))
-    }
+    report.queues = {name: {"max_depth": q.max_depth, "dropped": q.dropped} for name, q in graph.queues.items()}
     return report
 
 

@@ -9,13 +9,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from pipeline.config import DatasetConfig
 from pipeline.errors import DataError, UserError
 from pipeline.frame import Frame
-from pipeline.io.images import read_color, read_depth
+from pipeline.io.images import read_color, read_depth, resize_rgbd
 from pipeline.io.trajectory import read_numeric_table
 
 
@@ -47,12 +46,7 @@ class Dataset:
         depth = read_depth(ref.depth_path, self.depth_scale, color.shape[:2])
         intrinsics = self.intrinsics.copy()
         if self.resize is not None:
-            width, height = self.resize
-            sx, sy = width / color.shape[1], height / color.shape[0]
-            color = cv2.resize(color, (width, height), interpolation=cv2.INTER_LINEAR)
-            depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
-            intrinsics[0] *= sx
-            intrinsics[1] *= sy
+            color, depth, intrinsics = resize_rgbd(color, depth, intrinsics, self.resize)
         return Frame(ref.index, ref.timestamp, color, depth, intrinsics, ref.c2w_gt)
 
     def frames(self):

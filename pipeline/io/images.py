@@ -47,6 +47,22 @@ def read_depth(path: Path, scale: float, shape: tuple[int, int]) -> np.ndarray:
     raise DataError(f"depth image {path} has type {raw.dtype}, expected uint16 or float32")
 
 
+def resize_rgbd(
+    color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Resize colour [H, W, 3] (linear) and depth [H, W] metres (nearest: no depths mixed across
+    edges) to `size` (width, height), scaling the [3, 3] intrinsics to match."""
+    width, height = size
+    if color.shape[:2] == (height, width):
+        return color, depth, intrinsics
+    scaled = intrinsics.copy()
+    scaled[0] *= width / color.shape[1]
+    scaled[1] *= height / color.shape[0]
+    color = cv2.resize(color, (width, height), interpolation=cv2.INTER_LINEAR)
+    depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    return color, depth, scaled
+
+
 def write_depth_png(path: Path, depth: np.ndarray, scale: float) -> None:
     """Depth [H, W] metres -> uint16 PNG of round(depth x scale), saturating at 65535."""
     quantised = np.clip(np.rint(depth.astype(np.float64) * scale), 0, 65535).astype(np.uint16)

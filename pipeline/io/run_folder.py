@@ -15,6 +15,7 @@ from pipeline.config import Config, to_toml
 from pipeline.io.ply import write_ply
 from pipeline.io.trajectory import write_tum_trajectory
 from pipeline.render.types import Gaussians
+from pipeline.slam.gaussian_map import PARAMETER_NAMES
 
 FRAME_COLUMNS = [
     "index", "timestamp", "tracking_s", "densify_s", "mapping_s", "total_s",
@@ -59,6 +60,14 @@ class RunFolder:
         tmp = self.checkpoint.with_suffix(".pt.tmp")
         torch.save(payload, tmp)
         os.replace(tmp, self.checkpoint)
+
+    def write_state(self, slam_state: dict[str, Any], timestamps: np.ndarray, reference: np.ndarray | None) -> None:
+        """Trajectory (and reference), map and checkpoint from a SplaTAM `state_dict()` (on the
+        host); `timestamps` [N] seconds and `reference` [N, 4, 4] camera-to-world per pose."""
+        estimated = slam_state["poses"].double().numpy()
+        self.write_trajectories(timestamps, estimated, reference)
+        self.write_map(Gaussians(**{n: slam_state["gaussians"][n] for n in PARAMETER_NAMES}))
+        self.write_checkpoint({"slam": slam_state, "frames_done": len(estimated)})
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         _atomic_write_text(self.metrics, json.dumps(metrics, indent=2, sort_keys=True) + "\n")

@@ -99,7 +99,7 @@ class SplaTAM:
             current = Keyframe.of(frame.index, frame.color, frame.depth, c2w.detach())
             with self.clock.stage("mapping"):
                 self._map(window + [current], frame.intrinsics)
-            if frame.index % cfg.keyframes.every == 0 or is_last:
+            if self.frames_done % cfg.keyframes.every == 0 or is_last:
                 state.keyframes.append(current)
             state.poses.append(c2w.detach())
         return self._result(frame, c2w, c2w_init, loss, coverage, self.clock.read(), added)
@@ -182,10 +182,12 @@ class SplaTAM:
         )
 
     def state_dict(self) -> dict:
+        """Everything to continue the run, copied to the host (safe to write from another thread
+        while SLAM goes on)."""
         state = self.state
         assert state.gaussians is not None
         return {
-            "gaussians": {n: getattr(state.gaussians, n).cpu() for n in PARAMETER_NAMES},
+            "gaussians": {n: getattr(state.gaussians, n).detach().to("cpu", copy=True) for n in PARAMETER_NAMES},
             "keyframes": [
                 {"index": k.index, "color_u8": k.color_u8.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
                 for k in state.keyframes

@@ -2,21 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import torch
 from torch.profiler import record_function
 
 from pipeline.slam.splatam import FrameResult, SplaTAM
 from pipeline.stages.upload import UploadedFrame
 
+FrameObserver = Callable[[SplaTAM, FrameResult], None]
+
 
 class SlamStep:
     """Callable run in the SLAM worker thread. On CUDA it brackets every frame with events on
     the compute stream, so the idle time between one frame's GPU work and the next is measured
-    on the GPU's own clock."""
+    on the GPU's own clock. `observers` run after each frame, in this thread, at the one moment
+    the map is not being changed (periodic saves, viewer snapshots); they must be quick."""
 
-    def __init__(self, slam: SplaTAM, last_index: int | None) -> None:
+    def __init__(self, slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver] = ()) -> None:
         self.slam = slam
         self.last_index = last_index
+        self.observers = list(observers)
         self.cuda = slam.device.type == "cuda"
         self._events: list[tuple[torch.cuda.Event, torch.cuda.Event]] = []
 
@@ -32,6 +38,8 @@ class SlamStep:
                 end = torch.cuda.Event(enable_timing=True)
                 end.record()
                 self._events.append((start, end))
+            for observe in self.observers:
+                observe(self.slam, result)
         return result
 
     def gpu_gaps_ms(self) -> list[float]:

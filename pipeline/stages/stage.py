@@ -63,7 +63,8 @@ async def transform_stage(
     executor: Executor,
     stats: StageStats,
 ) -> None:
-    """Apply `fn` to every item in order, off the event loop."""
+    """Apply `fn` to every item in order, off the event loop. An item for which `fn` returns
+    None is dropped (a live frame found unusable)."""
     loop = asyncio.get_running_loop()
     while not isinstance(item := await inbox.get(), EndOfStream):
         start = time.perf_counter()
@@ -72,5 +73,6 @@ async def transform_stage(
         except Exception as exc:
             raise StageFailure(name, frame_index(item), exc) from exc
         stats.record(time.perf_counter() - start)
-        await outbox.put(result)
+        if result is not None:
+            await outbox.put(result)
     await outbox.put(END)

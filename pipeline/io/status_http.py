@@ -1,0 +1,35 @@
+"""A small JSON status endpoint for the daemon: `GET /status`."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from aiohttp import web
+
+log = logging.getLogger("gsplatam")
+
+
+async def serve_status(host: str, port: int, read: Callable[[], dict[str, Any]]) -> None:
+    """Serve `read()` as JSON at http://host:port/status until cancelled."""
+
+    async def status(request: web.Request) -> web.Response:
+        return web.json_response(read())
+
+    app = web.Application()
+    app.add_routes([web.get("/status", status)])
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, host, port)
+        try:
+            await site.start()
+        except OSError as exc:
+            log.error("status endpoint: cannot listen on %s:%d (%s); running without it", host, port, exc)
+            return
+        log.info("status: http://%s:%d/status", host, port)
+        await asyncio.Event().wait()
+    finally:
+        await runner.cleanup()

@@ -1,0 +1,126 @@
+"""The `serve` daemon: live reconstruction from a phone, until SIGINT/SIGTERM.
+
+The same runtime as `run`, with a live source (keep-newest back-pressure, reconnection inside
+the source, so SLAM maps into one map across disconnections), a periodic save, and a JSON
+status endpoint on localhost.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import AsyncIterable, Callable
+from dataclasses import dataclass, replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import Config, with_dataset_defaults
+from pipeline.devices import describe, resolve_device
+from pipeline.frame import Frame
+from pipeline.io.run_folder import RunFolder
+from pipeline.io.status_http import serve_status
+from pipeline.render import make_renderer, resolve_backend
+from pipeline.run import in_profiler_range, timing_summary, versions
+from pipeline.runtime import Graph, execute
+from pipeline.slam.splatam import SplaTAM
+from pipeline.stages.periodic_save import PeriodicSave
+from pipeline.stages.queues import Policy
+from pipeline.stages.sinks import ResultSink
+from pipeline.stages.slam import SlamStep
+from pipeline.stages.upload import make_uploader
+
+log = logging.getLogger("gsplatam")
+
+FPS_WINDOW = 10  # frames over which the status endpoint's fps is measured
+
+
+@dataclass
+class LiveInput:
+    """A live source and the function that turns its items into frames (None: unusable)."""
+
+    name: str
+    source: AsyncIterable[Any]
+    policy: Policy
+    decode: Callable[[Any], Frame | None]
+    counters: Any  # the source's dataclass of counters, reported by the status endpoint
+
+
+@dataclass
+class ServeResult:
+    folder: RunFolder
+    metrics: dict[str, Any] | None  # None when no frame was processed
+
+
+def status_reader(live: LiveInput, graph: Graph, sink: ResultSink, slam: SplaTAM) -> Callable[[], dict[str, Any]]:
+    """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
+
+    def read() -> dict[str, Any]:
+        results, arrivals = sink.results, sink.arrivals
+        recent = arrivals[-FPS_WINDOW:]
+        fps = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
+        source_queue = graph.queues.get("source")
+        last = results[-1] if results else None
+        return {
+            "source": live.name,
+            **vars(live.counters),
+            "processed": len(results),
+            "dropped": source_queue.dropped if source_queue is not None else 0,
+            "fps": fps,
+            "gaussians": last.gaussians if last else 0,
+            "tracking": "waiting" if last is None else ("lost: " + last.lost if last.lost else "ok"),
+            "lost_frames": sink.lost_frames,
+            "last_frame_ms": 1000 * last.seconds["total"] if last else None,
+            "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
+        }
+
+    return read
+
+
+def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult:
+    device = resolve_device(config.run.device)
+    config = with_dataset_defaults(config, "tum")  # a phone's depth is a real sensor's, as TUM's
+    config = replace(config, render=replace(config.render, backend=resolve_backend(config.render, device)))
+    folder = RunFolder(Path(config.run.output) / (config.run.name or f"live_{live.name}_{config.preset}"))
+    folder.write_config(config)
+    log.info("device: %s; run folder: %s", describe(device, config), folder.path)
+
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
+    saver = PeriodicSave(folder, config.live.save_every_s)
+    sink = ResultSink(folder, total=None, progress=progress)
+    uploader = make_uploader(device, slots=config.run.queue_size + 2)
+    graph = Graph(
+        source=live.source,
+        source_policy=live.policy,
+        decode=partial(in_profiler_range, "decode", live.decode),
+        upload=partial(in_profiler_range, "upload", uploader),
+        slam=SlamStep(slam, last_index=None, observers=[saver]),
+        sink=sink,
+        queue_size=config.run.queue_size,
+    )
+    if config.live.status_port:
+        read = status_reader(live, graph, sink, slam)
+        graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
+    try:
+        report = execute(graph, "pipelined")
+    finally:
+        sink.close()
+        saver.close()
+    if slam.state.gaussians is None:
+        log.info("stopped before any frame was processed: nothing to save")
+        return ServeResult(folder, None)
+    saver.save_now(slam)
+    metrics = {
+        "source": live.name,
+        "preset": config.preset,
+        "frames": slam.frames_done,
+        "gaussians": len(slam.state.gaussians),
+        "lost_frames": sink.lost_frames,
+        "counters": vars(live.counters),
+        "device": describe(device, config),
+        "versions": versions(),
+        "runtime": report.summary(),
+        "time": timing_summary(sink.results, report, sink.arrivals),
+    }
+    folder.write_metrics(metrics)
+    return ServeResult(folder, metrics)
