@@ -75,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
     live = serve.add_mutually_exclusive_group(required=True)
     live.add_argument("--record3d", metavar="URL", help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20")
+    live.add_argument(
+        "--nerfcapture", action="store_true",
+        help="NeRFCapture app over DDS (domain 0, topic Frames); its pose per --set live.device_pose=...",
+    )  # fmt: skip
     _add_config_options(serve)
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
 
@@ -86,6 +90,12 @@ def build_parser() -> argparse.ArgumentParser:
     fake.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
     fake.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
     fake.add_argument("--quiet", action="store_true")
+    fake_nc = sub.add_parser("fake-nerfcapture", help="publish a dataset as the NeRFCapture app would (DDS)")
+    fake_nc.add_argument("--dataset", help="dataset folder (default: the generated synthetic room)")
+    fake_nc.add_argument("--fps", type=float, default=10.0, help="frame rate")
+    fake_nc.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a receiver")
+    fake_nc.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
+    fake_nc.add_argument("--quiet", action="store_true")
     view = sub.add_parser("view", help="web viewer for a run folder or PLY (not built yet)")
     view.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
@@ -180,17 +190,30 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_serve(args: argparse.Namespace) -> int:
+def _live_input(args: argparse.Namespace, config):
     from pipeline.devices import live_max_width, resolve_device
+    from pipeline.serve import LiveInput
+
+    if args.nerfcapture:
+        from pipeline.io.nerfcapture import NeRFCaptureDecoder, NeRFCaptureSource
+
+        nerfcapture = NeRFCaptureSource()
+        decoder = NeRFCaptureDecoder(config.live.device_pose)
+        return LiveInput("nerfcapture", nerfcapture, nerfcapture.policy, decoder, nerfcapture.counters)
     from pipeline.io.record3d import Record3DDecoder, Record3DSource
-    from pipeline.serve import LiveInput, serve
+
+    record3d = Record3DSource(args.record3d, config.live)
+    size = (config.live.width, config.live.height) if config.live.width else None
+    decoder = Record3DDecoder(record3d.counters, size, live_max_width(resolve_device(config.run.device)))
+    return LiveInput("record3d", record3d, record3d.policy, decoder, record3d.counters)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from pipeline.serve import serve
 
     config = _config_from(args)
-    source = Record3DSource(args.record3d, config.live)
-    size = (config.live.width, config.live.height) if config.live.width else None
-    decoder = Record3DDecoder(source.counters, size, live_max_width(resolve_device(config.run.device)))
-    live = LiveInput("record3d", source, source.policy, decoder, source.counters)
-    log.info("serving: %s -> SLAM; Ctrl-C saves and stops", source.url)
+    live = _live_input(args, config)
+    log.info("serving %s -> SLAM; Ctrl-C saves and stops", args.record3d or "NeRFCapture over DDS")
     result = serve(config, live, progress=not args.quiet)
     if result.metrics is not None:
         print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians: {result.folder.path}/")
@@ -201,22 +224,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
 FAKE_PHONE_SCENE_SIZE = (256, 192, 300)
 
 
-def cmd_fake_record3d(args: argparse.Namespace) -> int:
-    import asyncio
-
-    from pipeline.config import DatasetConfig
+def _fake_phone_dataset(args: argparse.Namespace):
+    from pipeline.config import DatasetConfig, SyntheticConfig
     from pipeline.io.dataset import open_dataset
-    from pipeline.io.fake_record3d import FakePhone
     from pipeline.io.synth_writer import cached_synthetic
 
     path = args.dataset
     if not path:
-        from pipeline.config import SyntheticConfig
-
         width, height, frames = FAKE_PHONE_SCENE_SIZE
         scene = SyntheticConfig(frames=frames, width=width, height=height)
         path = str(cached_synthetic(Path(args.output) / "synthetic", scene, not args.quiet))
-    dataset = open_dataset(DatasetConfig(path=path))
+    return open_dataset(DatasetConfig(path=path))
+
+
+def cmd_fake_record3d(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from pipeline.io.fake_record3d import FakePhone
+
+    dataset = _fake_phone_dataset(args)
 
     async def main() -> None:
         phone = FakePhone(dataset, args.fps, args.loop)
@@ -238,6 +264,21 @@ def cmd_fake_record3d(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
+    from pipeline.io.fake_nerfcapture import publish_dataset
+
+    dataset = _fake_phone_dataset(args)
+    log.info(
+        "fake NeRFCapture: publishing %s (%d frames at %g fps) once a receiver matches",
+        dataset.name,
+        len(dataset),
+        args.fps,
+    )
+    sent = publish_dataset(dataset, args.fps, args.wait)
+    print(f"published {sent} frames")
+    return 0 if sent else 1
+
+
 def cmd_not_built(args: argparse.Namespace) -> int:
     raise UserError(f"'{args.command}' is not built yet in this version")
 
@@ -248,6 +289,7 @@ COMMANDS = {
     "bench": cmd_bench,
     "serve": cmd_serve,
     "fake-record3d": cmd_fake_record3d,
+    "fake-nerfcapture": cmd_fake_nerfcapture,
     "view": cmd_not_built,
 }
 

@@ -22,6 +22,7 @@ class Frame:
     depth: np.ndarray  # [H, W] float32 metres, 0 = invalid
     intrinsics: np.ndarray  # [3, 3] float64 pixels
     c2w_gt: np.ndarray | None  # [4, 4] float64 ground-truth camera-to-world, if known
+    c2w_prior: np.ndarray | None = None  # [4, 4] float64 a device's own pose estimate (e.g. ARKit), if used
 
     @property
     def height(self) -> int:
@@ -42,6 +43,7 @@ class DeviceFrame:
     depth: torch.Tensor  # [H, W] float32 metres, 0 = invalid
     intrinsics: torch.Tensor  # [3, 3] float32
     c2w_gt: torch.Tensor | None  # [4, 4] float32
+    c2w_prior: torch.Tensor | None = None  # [4, 4] float32 a device's pose estimate: tracking starts from its motion
 
     @property
     def height(self) -> int:

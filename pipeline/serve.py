@@ -15,15 +15,18 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
 from pipeline.frame import Frame
 from pipeline.io.run_folder import RunFolder
 from pipeline.io.status_http import serve_status
+from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.run import in_profiler_range, timing_summary, versions
 from pipeline.runtime import Graph, execute
-from pipeline.slam.splatam import SplaTAM
+from pipeline.slam.splatam import FrameResult, SplaTAM
 from pipeline.stages.periodic_save import PeriodicSave
 from pipeline.stages.queues import Policy
 from pipeline.stages.sinks import ResultSink
@@ -52,6 +55,17 @@ class ServeResult:
     metrics: dict[str, Any] | None  # None when no frame was processed
 
 
+def live_ate_cm(results: list[FrameResult]) -> float | None:
+    """ATE RMSE (cm) of the frames that came with a reference pose (NeRFCapture's device pose
+    when live.device_pose = groundtruth); None with fewer than 3."""
+    pairs = [(r.c2w, r.c2w_gt) for r in results if r.c2w_gt is not None]
+    if len(pairs) < 3:
+        return None
+    estimated = np.stack([e.double().numpy() for e, _ in pairs])
+    reference = np.stack([g.double().numpy() for _, g in pairs])
+    return 100 * absolute_trajectory_error(estimated, reference).rmse_m
+
+
 def status_reader(live: LiveInput, graph: Graph, sink: ResultSink, slam: SplaTAM) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
 
@@ -72,6 +86,7 @@ def status_reader(live: LiveInput, graph: Graph, sink: ResultSink, slam: SplaTAM
             "lost_frames": sink.lost_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
+            "ate_rmse_cm": live_ate_cm(results),
         }
 
     return read
@@ -121,6 +136,7 @@ def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult
         "versions": versions(),
         "runtime": report.summary(),
         "time": timing_summary(sink.results, report, sink.arrivals),
+        "ate_rmse_cm": live_ate_cm(sink.results),
     }
     folder.write_metrics(metrics)
     return ServeResult(folder, metrics)

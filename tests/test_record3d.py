@@ -11,8 +11,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
-import urllib.request
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -51,6 +49,7 @@ from pipeline.io.record3d_frames import (
     unpack_frame,
 )
 from pipeline.io.synth_writer import write_synthetic
+from tests.live_helpers import free_port, read_status, wait_for
 
 FAST = LiveConfig(retry_initial_s=0.05, retry_max_s=0.2, connect_timeout_s=5.0, stall_timeout_s=1.0)
 
@@ -320,36 +319,13 @@ def test_bad_phone_responses_give_specific_errors(
     asyncio.run(main())
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _status(port: int) -> dict[str, Any] | None:
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=2) as response:
-            return json.loads(response.read())
-    except OSError:
-        return None
-
-
-def _wait_for(predicate: Callable[[], bool], seconds: float, what: str, log_path: Path) -> None:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.5)
-    raise AssertionError(f"timed out waiting for {what}; daemon log:\n{log_path.read_text()[-3000:]}")
-
-
 def test_daemon_reconstructs_from_the_fake_phone_and_survives_a_reconnect(
     phone_dataset: Dataset, tmp_path: Path
 ) -> None:
     phone = FakePhone(phone_dataset, fps=5, loop=True)
     device = PhoneThread()
     port = device.call(lambda: phone.start("127.0.0.1", 0))
-    status_port = _free_port()
+    status_port = free_port()
     log_path = tmp_path / "daemon.log"
     command = [
         sys.executable, "-m", "pipeline", "serve", "--record3d", f"http://127.0.0.1:{port}", "--device", "cpu",
@@ -360,12 +336,12 @@ def test_daemon_reconstructs_from_the_fake_phone_and_survives_a_reconnect(
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env={**os.environ})
     try:
-        _wait_for(lambda: (_status(status_port) or {}).get("processed", 0) >= 3, 120, "3 frames", log_path)
+        wait_for(lambda: (read_status(status_port) or {}).get("processed", 0) >= 3, 120, "3 frames", log_path)
         device.call(phone.disconnect)
-        _wait_for(lambda: (_status(status_port) or {}).get("connections", 0) >= 2, 60, "a reconnection", log_path)
-        before = _status(status_port)["processed"]  # type: ignore[index]
-        _wait_for(lambda: (_status(status_port) or {})["processed"] >= before + 2, 120, "frames after it", log_path)
-        status = _status(status_port)
+        wait_for(lambda: (read_status(status_port) or {}).get("connections", 0) >= 2, 60, "a reconnection", log_path)
+        before = read_status(status_port)["processed"]  # type: ignore[index]
+        wait_for(lambda: (read_status(status_port) or {})["processed"] >= before + 2, 120, "frames after it", log_path)
+        status = read_status(status_port)
         assert status is not None and status["gaussians"] > 0 and status["received"] >= status["processed"]
     finally:
         daemon.send_signal(signal.SIGINT)

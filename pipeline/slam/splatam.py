@@ -35,6 +35,7 @@ class FrameResult:
     tracking_loss: float  # per tracked pixel at the chosen pose
     coverage: float  # fraction of valid-depth pixels used by tracking
     lost: str = ""  # empty when tracking looked healthy, else why not
+    c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
 
 
 @dataclass
@@ -46,6 +47,7 @@ class SlamState:
     poses: list[torch.Tensor] = field(default_factory=list)  # estimated camera-to-world per frame
     scene_radius: float = 0.0
     loss_history: list[float] = field(default_factory=list)
+    last_prior: torch.Tensor | None = None  # [4, 4] the last frame's device pose, if it had one
 
 
 class SplaTAM:
@@ -76,7 +78,7 @@ class SplaTAM:
                 window: list[Keyframe] = []
             else:
                 with self.clock.stage("tracking"):
-                    c2w_init = self._initial_pose()
+                    c2w_init = self._initial_pose(frame)
                     tracked = track(
                         detached(state.gaussians), frame, c2w_init, self.renderer, cfg.tracking, cfg.loss,
                         cfg.render.near, cfg.render.far, self.kernels,
@@ -102,6 +104,7 @@ class SplaTAM:
             if self.frames_done % cfg.keyframes.every == 0 or is_last:
                 state.keyframes.append(current)
             state.poses.append(c2w.detach())
+            state.last_prior = frame.c2w_prior
         return self._result(frame, c2w, c2w_init, loss, coverage, self.clock.read(), added)
 
     def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
@@ -113,8 +116,12 @@ class SplaTAM:
         self.state.scene_radius = float(frame.depth.max()) / self.config.mapping.scene_radius_divisor
         return len(self.state.gaussians)
 
-    def _initial_pose(self) -> torch.Tensor:
-        poses = self.state.poses
+    def _initial_pose(self, frame: DeviceFrame) -> torch.Tensor:
+        """The device's own motion since the last frame applied to the last estimate when the
+        frame brings a pose prior, else constant velocity."""
+        poses, prior = self.state.poses, self.state.last_prior
+        if frame.c2w_prior is not None and prior is not None:
+            return poses[-1] @ invert_pose(prior) @ frame.c2w_prior
         return poses[-1] if len(poses) < 2 else constant_velocity(poses[-2], poses[-1])
 
     def _densify(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
@@ -179,6 +186,7 @@ class SplaTAM:
             tracking_loss=per_pixel,
             coverage=cov,
             lost=lost,
+            c2w_gt=None if frame.c2w_gt is None else frame.c2w_gt.cpu(),
         )
 
     def state_dict(self) -> dict:

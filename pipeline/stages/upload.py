@@ -36,6 +36,7 @@ def host_frame_tensors(frame: Frame) -> DeviceFrame:
         depth=torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32)),
         intrinsics=torch.from_numpy(frame.intrinsics).float(),
         c2w_gt=None if frame.c2w_gt is None else torch.from_numpy(frame.c2w_gt).float(),
+        c2w_prior=None if frame.c2w_prior is None else torch.from_numpy(frame.c2w_prior).float(),
     )
 
 
@@ -77,18 +78,18 @@ class PinnedUploader:
             color = color_host.to(self.device, non_blocking=True).float().div_(255.0)
             depth = depth_host.to(self.device, non_blocking=True)
             intrinsics = torch.from_numpy(frame.intrinsics).float().to(self.device, non_blocking=True)
-            c2w_gt = (
-                None
-                if frame.c2w_gt is None
-                else torch.from_numpy(frame.c2w_gt).float().to(self.device, non_blocking=True)
+            c2w_gt, c2w_prior = (
+                None if pose is None else torch.from_numpy(pose).float().to(self.device, non_blocking=True)
+                for pose in (frame.c2w_gt, frame.c2w_prior)
             )
             event = torch.cuda.Event()
             event.record(self.stream)
-        for tensor in (color, depth, intrinsics, c2w_gt):
+        for tensor in (color, depth, intrinsics, c2w_gt, c2w_prior):
             if tensor is not None:
                 tensor.record_stream(consumer)  # allocated on the copy stream, used on the compute stream
         self._events[k] = event
-        return UploadedFrame(DeviceFrame(frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt), event)
+        device_frame = DeviceFrame(frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt, c2w_prior)
+        return UploadedFrame(device_frame, event)
 
 
 class HostUploader:
