@@ -32,6 +32,13 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def _add_viewer_options(parser: argparse.ArgumentParser, always: bool = False) -> None:
+    if not always:
+        parser.add_argument("--viewer", action="store_true", help="watch it in the browser (viser)")
+    parser.add_argument("--viewer-port", type=int, help="viewer port (default: 8080)")
+    parser.add_argument("--viewer-host", help="viewer address (default: 127.0.0.1; 0.0.0.0 exposes it)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="gsplatam", description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
@@ -43,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its checkpoint")
     run.add_argument("--loader", choices=["pipelined", "sync"], help="asyncio pipeline (default) or a plain loop")
     run.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
+    _add_viewer_options(run)
 
     synth = sub.add_parser("synth", help="write a synthetic RGB-D sequence with exact poses")
     synth.add_argument("out", help="output folder")
@@ -81,11 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     _add_config_options(serve)
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
+    _add_viewer_options(serve)
 
     fake = sub.add_parser("fake-record3d", help="a fake Record3D phone streaming a dataset (for tests and demos)")
     fake.add_argument("--dataset", help="dataset folder (default: the generated synthetic room)")
     fake.add_argument("--host", default="127.0.0.1", help="address to serve on (default: 127.0.0.1)")
-    fake.add_argument("--port", type=int, default=8080, help="HTTP port (the real app uses 80)")
+    fake.add_argument("--port", type=int, default=8000, help="HTTP port (the real app uses 80)")
     fake.add_argument("--fps", type=float, default=30.0, help="frame rate of the stream")
     fake.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
     fake.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
@@ -96,8 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     fake_nc.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a receiver")
     fake_nc.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
     fake_nc.add_argument("--quiet", action="store_true")
-    view = sub.add_parser("view", help="web viewer for a run folder or PLY (not built yet)")
-    view.add_argument("rest", nargs=argparse.REMAINDER)
+    view = sub.add_parser("view", help="web viewer for a saved map: a run folder or a 3DGS PLY")
+    view.add_argument("path", help="run folder (map.ply, trajectory.txt) or a .ply file")
+    _add_viewer_options(view, always=True)
     return parser
 
 
@@ -119,6 +129,9 @@ def _config_from(args: argparse.Namespace):
         ("run.device", args.device),
         ("run.name", getattr(args, "name", None)),
         ("run.loader", getattr(args, "loader", None)),
+        ("viewer.enabled", "true" if getattr(args, "viewer", False) else None),
+        ("viewer.port", getattr(args, "viewer_port", None)),
+        ("viewer.host", getattr(args, "viewer_host", None)),
     ):
         if value:
             config = with_value(config, key, value)
@@ -279,8 +292,36 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
     return 0 if sent else 1
 
 
-def cmd_not_built(args: argparse.Namespace) -> int:
-    raise UserError(f"'{args.command}' is not built yet in this version")
+def cmd_view(args: argparse.Namespace) -> int:
+    import threading
+
+    from pipeline.io.ply import read_ply
+    from pipeline.io.trajectory import read_tum_trajectory
+    from pipeline.io.viewer import Viewer
+    from pipeline.stages.viewer_feed import map_view
+
+    path = Path(args.path)
+    ply = path / "map.ply" if path.is_dir() else path
+    if not ply.is_file():
+        raise UserError(f"no map to show: {ply} does not exist")
+    gaussians = read_ply(ply)
+    viewer = Viewer(args.viewer_host or "127.0.0.1", args.viewer_port or 8080, f"gsplatam: {ply}", live=False)
+    viewer.show_map(map_view(gaussians))
+    trajectory = path / "trajectory.txt"
+    if path.is_dir() and trajectory.is_file():
+        poses = read_tum_trajectory(trajectory)[1]
+        viewer.show_trajectory(poses)
+        if len(poses):
+            viewer.look_from(poses[0])
+    viewer.stats.content = f"{len(gaussians):,} Gaussians from {ply}"
+    print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)")
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass  # the way to quit
+    finally:
+        viewer.close()
+    return 0
 
 
 COMMANDS = {
@@ -290,7 +331,7 @@ COMMANDS = {
     "serve": cmd_serve,
     "fake-record3d": cmd_fake_record3d,
     "fake-nerfcapture": cmd_fake_nerfcapture,
-    "view": cmd_not_built,
+    "view": cmd_view,
 }
 
 

@@ -141,6 +141,14 @@ class LiveConfig:
 
 
 @dataclass(frozen=True)
+class ViewerConfig:
+    enabled: bool = False
+    host: str = "127.0.0.1"  # 0.0.0.0 exposes it to the network: deliberately
+    port: int = 8080
+    max_hz: float = 2.0  # map snapshots per second at most (each is a host copy of the map)
+
+
+@dataclass(frozen=True)
 class Config:
     preset: str = "base"
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
@@ -154,6 +162,7 @@ class Config:
     render: RenderConfig = field(default_factory=RenderConfig)
     run: RunConfig = field(default_factory=RunConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
 
 # tracking iters / mapping iters / mapping window / keyframe every
@@ -324,6 +333,7 @@ def validate(config: Config) -> None:
         (0.0 < config.render.near < config.render.far, "need 0 < render.near < render.far"),
         ((config.live.width > 0) == (config.live.height > 0), "set both live.width and live.height"),
         (config.live.save_every_s > 0, "live.save_every_s must be > 0"),
+        (config.viewer.max_hz > 0, "viewer.max_hz must be > 0"),
         (0 < config.live.retry_initial_s <= config.live.retry_max_s, "need 0 < live.retry_initial_s <= retry_max_s"),
         (config.live.connect_timeout_s > 0 and config.live.stall_timeout_s > 0, "live timeouts must be > 0"),
     ]

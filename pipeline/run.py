@@ -33,6 +33,7 @@ from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStep
 from pipeline.stages.source import DatasetSource
 from pipeline.stages.upload import make_uploader
+from pipeline.stages.viewer_feed import attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
 
@@ -89,19 +90,23 @@ def run_slam(
 
     uploader = make_uploader(device, slots=config.run.queue_size + 2)
     sink = ResultSink(folder, total=len(dataset), initial=start_at, progress=progress)
+    viewer = attach_viewer(config, slam, folder, f"gsplatam: {dataset.name}")
     graph = Graph(
         source=DatasetSource(dataset, start_at),
         source_policy=DatasetSource.policy,
         decode=partial(in_profiler_range, "decode", dataset.decode),
         upload=partial(in_profiler_range, "upload", uploader),
-        slam=SlamStep(slam, last_index=len(dataset) - 1),
+        slam=SlamStep(slam, last_index=len(dataset) - 1, observers=[viewer] if viewer else []),
         sink=sink,
         queue_size=config.run.queue_size,
+        services=[partial(release_on_stop, viewer)] if viewer else [],
     )
     try:
         report = _execute(graph, config, folder, profile_trace, device)
     finally:
         sink.close()
+        if viewer is not None:
+            viewer.close()
     if slam.state.gaussians is None:
         if report.interrupted:
             log.info("interrupted before the first frame was processed: nothing to write")

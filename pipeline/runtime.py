@@ -77,7 +77,9 @@ class Graph:
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
-    services: list[Callable[[], Coroutine[Any, Any, None]]] = field(default_factory=list)  # run beside the graph
+    services: list[Callable[[asyncio.Event], Coroutine[Any, Any, None]]] = field(
+        default_factory=list
+    )  # beside it; get `stop`
     queues: dict[str, StageQueue[Any]] = field(default_factory=dict)  # filled by run_graph, for live status
 
 
@@ -139,7 +141,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             ]
             slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
             group.create_task(graph.sink.drain(results))
-            upstream += [group.create_task(service()) for service in graph.services]
+            upstream += [group.create_task(service(stop)) for service in graph.services]
             await slam
             for task in upstream:
                 task.cancel()

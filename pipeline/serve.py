@@ -32,6 +32,7 @@ from pipeline.stages.queues import Policy
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStep
 from pipeline.stages.upload import make_uploader
+from pipeline.stages.viewer_feed import attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
 
@@ -104,14 +105,16 @@ def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult
     saver = PeriodicSave(folder, config.live.save_every_s)
     sink = ResultSink(folder, total=None, progress=progress)
     uploader = make_uploader(device, slots=config.run.queue_size + 2)
+    viewer = attach_viewer(config, slam, folder, f"gsplatam: live {live.name}")
     graph = Graph(
         source=live.source,
         source_policy=live.policy,
         decode=partial(in_profiler_range, "decode", live.decode),
         upload=partial(in_profiler_range, "upload", uploader),
-        slam=SlamStep(slam, last_index=None, observers=[saver]),
+        slam=SlamStep(slam, last_index=None, observers=[saver] + ([viewer] if viewer else [])),
         sink=sink,
         queue_size=config.run.queue_size,
+        services=[partial(release_on_stop, viewer)] if viewer else [],
     )
     if config.live.status_port:
         read = status_reader(live, graph, sink, slam)
@@ -121,6 +124,8 @@ def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult
     finally:
         sink.close()
         saver.close()
+        if viewer is not None:
+            viewer.close()
     if slam.state.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(folder, None)

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from live_helpers import free_port, read_status, wait_for
 
 from pipeline.config import DatasetConfig, SyntheticConfig
 from pipeline.io.dataset import Dataset, open_dataset
@@ -30,7 +31,6 @@ from pipeline.io.nerfcapture import (
 from pipeline.io.synth_writer import write_synthetic
 from pipeline.serve import live_ate_cm
 from pipeline.slam.splatam import FrameResult
-from tests.live_helpers import free_port, read_status, wait_for
 
 
 @pytest.fixture(scope="module")

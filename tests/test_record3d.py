@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from aiohttp import web
 from aiortc import RTCPeerConnection
+from live_helpers import free_port, read_status, wait_for
 
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.errors import DataError
@@ -49,7 +50,6 @@ from pipeline.io.record3d_frames import (
     unpack_frame,
 )
 from pipeline.io.synth_writer import write_synthetic
-from tests.live_helpers import free_port, read_status, wait_for
 
 FAST = LiveConfig(retry_initial_s=0.05, retry_max_s=0.2, connect_timeout_s=5.0, stall_timeout_s=1.0)
 

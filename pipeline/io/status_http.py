@@ -12,8 +12,9 @@ from aiohttp import web
 log = logging.getLogger("gsplatam")
 
 
-async def serve_status(host: str, port: int, read: Callable[[], dict[str, Any]]) -> None:
-    """Serve `read()` as JSON at http://host:port/status until cancelled."""
+async def serve_status(host: str, port: int, read: Callable[[], dict[str, Any]], stop: asyncio.Event) -> None:
+    """Serve `read()` as JSON at http://host:port/status until cancelled (`stop` is not needed:
+    the status stays up until the graph has finished)."""
 
     async def status(request: web.Request) -> web.Response:
         return web.json_response(read())

@@ -8,6 +8,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
+from pipeline.frame import DeviceFrame
 from pipeline.io.run_folder import RunFolder
 from pipeline.slam.splatam import FrameResult, SplaTAM
 
@@ -28,7 +29,7 @@ class PeriodicSave:
         self._pending: Future[None] | None = None
         self.saves = 0
 
-    def __call__(self, slam: SplaTAM, result: FrameResult) -> None:
+    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
         self.timestamps.append(result.timestamp)
         if time.monotonic() - self._last >= self.every_s and (self._pending is None or self._pending.done()):
             self._last = time.monotonic()

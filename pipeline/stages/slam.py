@@ -7,10 +7,11 @@ from collections.abc import Callable, Sequence
 import torch
 from torch.profiler import record_function
 
+from pipeline.frame import DeviceFrame
 from pipeline.slam.splatam import FrameResult, SplaTAM
 from pipeline.stages.upload import UploadedFrame
 
-FrameObserver = Callable[[SplaTAM, FrameResult], None]
+FrameObserver = Callable[[SplaTAM, DeviceFrame, FrameResult], None]
 
 
 class SlamStep:
@@ -39,7 +40,7 @@ class SlamStep:
                 end.record()
                 self._events.append((start, end))
             for observe in self.observers:
-                observe(self.slam, result)
+                observe(self.slam, frame, result)
         return result
 
     def gpu_gaps_ms(self) -> list[float]:

@@ -1,0 +1,153 @@
+"""The live web viewer (viser): splats, trajectory, the latest frame, stats and controls.
+
+The map is pushed to viser's in-browser splat renderer: the browser's GPU draws every view the
+user moves to at display rate, and the SLAM GPU only pays for a host copy of the map at a
+bounded rate (bench/results/viewer.md measures the cost). Rendered depth and silhouette at the
+latest pose are small images made by the viewer thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+import viser.transforms as vtf
+
+log = logging.getLogger("gsplatam")
+
+
+@dataclass
+class MapView:
+    """A map ready for viser, on the host."""
+
+    centers: np.ndarray  # [N, 3] float32 world metres
+    covariances: np.ndarray  # [N, 3, 3] float32 metres^2
+    rgbs: np.ndarray  # [N, 3] float32 in [0, 1]
+    opacities: np.ndarray  # [N, 1] float32 in [0, 1]
+
+
+@dataclass
+class FrameView:
+    """What the viewer shows of the latest processed frame (host arrays)."""
+
+    index: int
+    poses: np.ndarray  # [F, 4, 4] estimated camera-to-world of every frame so far
+    intrinsics: np.ndarray  # [3, 3] pixels
+    color: np.ndarray  # [H, W, 3] uint8 input colour
+    depth: np.ndarray  # [H, W, 3] uint8 input depth, colour-mapped
+    rendered_depth: np.ndarray | None  # [H, W, 3] uint8 colour-mapped, None when not rendered this time
+    silhouette: np.ndarray | None  # [H, W, 3] uint8
+    stats: str  # markdown
+
+
+def colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:
+    """Depth [H, W] metres -> [H, W, 3] uint8 (turbo colour map, black where 0)."""
+    import cv2
+
+    scaled = np.clip(depth / max(far, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+    rgb = cv2.cvtColor(cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+    rgb[depth <= 0] = 0
+    return rgb
+
+
+class Viewer:
+    """A viser server with the scene and the controls. Every method may be called from any
+    thread (viser queues messages to its own event loop)."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        title: str,
+        live: bool = True,
+    ) -> None:
+        """`live`: the latest frame's images and the pause, save and stop buttons (for a running
+        SLAM; not for a saved map)."""
+        self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
+        self.url = f"http://{host}:{self.server.get_port()}"
+        self.server.scene.set_up_direction("-y")  # OpenCV world: y points down
+        self.running = threading.Event()  # cleared while paused
+        self.running.set()
+        self.save_requested = threading.Event()
+        gui = self.server.gui
+        self.stats = gui.add_markdown("waiting for the first frame")
+        self.follow = gui.add_checkbox("Follow camera", initial_value=False)
+        self.images: dict[str, viser.GuiImageHandle] = {}
+        if live:
+            self.pause = gui.add_button("Pause SLAM")
+            self.pause.on_click(lambda _: self._toggle_pause())
+            gui.add_button("Save map now").on_click(lambda _: self.save_requested.set())
+            gui.add_button("Stop").on_click(lambda _: self.request_stop())
+            blank = np.zeros((2, 2, 3), np.uint8)
+            self.images = {
+                name: gui.add_image(blank, label=name, format="jpeg")
+                for name in ("input colour", "input depth", "rendered depth", "silhouette")
+            }
+        self._camera_pose: vtf.SE3 | None = None  # the latest estimate: where a new browser starts
+        self.server.on_client_connect(self._place_camera)
+        log.info("viewer: %s", self.url)
+
+    def _place_camera(self, client: viser.ClientHandle) -> None:
+        if self._camera_pose is not None:
+            with client.atomic():
+                client.camera.wxyz = self._camera_pose.rotation().wxyz
+                client.camera.position = self._camera_pose.translation()
+
+    def _toggle_pause(self) -> None:
+        if self.running.is_set():
+            self.running.clear()
+            self.pause.label = "Resume SLAM"
+        else:
+            self.running.set()
+            self.pause.label = "Pause SLAM"
+
+    def request_stop(self) -> None:
+        """Finish the run cleanly, as Ctrl-C would."""
+        self.running.set()
+        os.kill(os.getpid(), signal.SIGINT)
+
+    def show_map(self, view: MapView) -> None:
+        self.server.scene.add_gaussian_splats("/map", view.centers, view.covariances, view.rgbs, view.opacities)
+
+    def show_trajectory(self, poses: np.ndarray) -> None:
+        """The camera path through `poses` [F, 4, 4] camera-to-world."""
+        if len(poses) > 1:
+            centres = poses[:, :3, 3].astype(np.float32)
+            segments = np.stack([centres[:-1], centres[1:]], axis=1)
+            self.server.scene.add_line_segments("/trajectory", segments, colors=(230, 60, 40), thickness=0.01)
+
+    def show_frame(self, view: FrameView) -> None:
+        self.stats.content = view.stats
+        height, width = view.color.shape[:2]
+        fov = 2.0 * np.arctan2(height / 2.0, view.intrinsics[1, 1])
+        pose = vtf.SE3.from_matrix(view.poses[-1])
+        self.server.scene.add_camera_frustum(
+            "/camera", fov=fov, aspect=width / height, scale=0.15, image=view.color, format="jpeg",
+            wxyz=pose.rotation().wxyz, position=pose.translation(), color=(230, 60, 40),
+        )  # fmt: skip
+        self.show_trajectory(view.poses)
+        images = {"input colour": view.color, "input depth": view.depth}
+        if view.rendered_depth is not None and view.silhouette is not None:
+            images.update({"rendered depth": view.rendered_depth, "silhouette": view.silhouette})
+        for name, image in images.items():
+            self.images[name].image = image
+        if self.follow.value or self._camera_pose is None:
+            self.look_from(view.poses[-1])
+
+    def look_from(self, c2w: np.ndarray) -> None:
+        """Put every browser's camera (and any that connects later) at `c2w` [4, 4]."""
+        self._camera_pose = vtf.SE3.from_matrix(c2w)
+        for client in self.server.get_clients().values():
+            self._place_camera(client)
+
+    def clients(self) -> int:
+        return len(self.server.get_clients())
+
+    def close(self) -> None:
+        self.running.set()
+        self.server.stop()

@@ -1,0 +1,184 @@
+"""Feeding the web viewer without slowing SLAM.
+
+At a frame boundary (the SLAM-stage observer) the map and the frame are cloned on the device,
+at most `max_hz` times a second and only when the viewer thread is idle; that thread copies
+them to the host on its own CUDA stream, renders depth and silhouette at the latest pose and
+pushes everything to the browser. A slow or absent browser only makes snapshots rarer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from pipeline.config import Config, RenderConfig
+from pipeline.frame import DeviceFrame
+from pipeline.geometry import invert_pose, quat_to_rotmat
+from pipeline.io.run_folder import RunFolder
+from pipeline.io.viewer import FrameView, MapView, Viewer, colorize_depth
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.splatam import FrameResult, SplaTAM
+
+log = logging.getLogger("gsplatam")
+
+
+def map_view(gaussians: Gaussians) -> MapView:
+    """Activated parameters on the host: covariance R S^2 R^T, opacity sigmoid(logit)."""
+    with torch.no_grad():
+        rotation = quat_to_rotmat(gaussians.quats)
+        covariances = (rotation * gaussians.scales().square()[:, None, :]) @ rotation.transpose(1, 2)
+        return MapView(
+            centers=gaussians.means.float().cpu().numpy(),
+            covariances=covariances.float().cpu().numpy(),
+            rgbs=gaussians.colors.clamp(0, 1).float().cpu().numpy(),
+            opacities=torch.sigmoid(gaussians.opacity_logits)[:, None].float().cpu().numpy(),
+        )
+
+
+@dataclass
+class Snapshot:
+    """Device tensors cloned at a frame boundary (SLAM changes the map in place afterwards)."""
+
+    gaussians: Gaussians
+    poses: torch.Tensor  # [F, 4, 4] camera-to-world
+    frame: DeviceFrame
+    result: FrameResult
+    fps: float
+    ready: torch.cuda.Event | None  # recorded after the clones on the compute stream
+
+
+def _to_u8(image: torch.Tensor) -> np.ndarray:
+    return (image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
+
+
+class ViewerFeed:
+    """The SLAM-stage observer that feeds `viewer`; also carries out its pause and save buttons
+    (pausing holds SLAM at a frame boundary; saving writes map.ply from a host copy in a thread)."""
+
+    def __init__(
+        self, viewer: Viewer, renderer: Renderer, render: RenderConfig, max_hz: float, folder: RunFolder
+    ) -> None:
+        self.viewer = viewer
+        self.folder = folder
+        self.renderer = renderer
+        self.render = render
+        self.period_s = 1.0 / max_hz
+        self.released = threading.Event()  # set when the run stops: pausing is over
+        self.snapshots = 0
+        self._handoff: queue.Queue[Snapshot | None] = queue.Queue(maxsize=1)
+        self._last = -float("inf")
+        self._previous_frame_at: float | None = None
+        self._fps = 0.0
+        self._stream: torch.cuda.Stream | None = None
+        self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
+        self._thread.start()
+
+    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
+        now = time.perf_counter()
+        if self._previous_frame_at is not None:
+            self._fps = 1.0 / max(now - self._previous_frame_at, 1e-9)
+        self._previous_frame_at = now
+        while not self.viewer.running.wait(0.2) and not self.released.is_set():
+            pass  # paused from the browser
+        if self.viewer.save_requested.is_set() and slam.state.gaussians is not None:
+            self.viewer.save_requested.clear()
+            g = slam.state.gaussians
+            host = Gaussians(*(getattr(g, f.name).detach().to("cpu", copy=True) for f in fields(Gaussians)))
+            threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
+        if now - self._last < self.period_s or self._handoff.full() or slam.state.gaussians is None:
+            return
+        self._last = now
+        g = slam.state.gaussians
+        cuda = frame.depth.is_cuda
+        snapshot = Snapshot(
+            gaussians=Gaussians(*(getattr(g, f.name).detach().clone() for f in fields(Gaussians))),
+            poses=torch.stack(slam.state.poses),
+            frame=frame,
+            result=result,
+            fps=self._fps,
+            ready=torch.cuda.Event() if cuda else None,
+        )
+        if snapshot.ready is not None:
+            snapshot.ready.record()
+            if self._stream is None:
+                self._stream = torch.cuda.Stream(frame.depth.device)
+        self.snapshots += 1
+        self._handoff.put_nowait(snapshot)
+
+    def _save(self, gaussians: Gaussians) -> None:
+        try:
+            self.folder.write_map(gaussians)
+            log.info("viewer: saved %d Gaussians to %s", len(gaussians), self.folder.map)
+        except OSError as exc:
+            log.error("viewer: saving %s failed: %s", self.folder.map, exc)
+
+    def _work(self) -> None:
+        while (snapshot := self._handoff.get()) is not None:
+            try:
+                self._show(snapshot)
+            except Exception:  # the viewer must never stop SLAM
+                log.exception("viewer: update failed")
+
+    def _show(self, snap: Snapshot) -> None:
+        stream = torch.cuda.stream(self._stream) if self._stream is not None else contextlib.nullcontext()
+        with stream, torch.no_grad():
+            if snap.ready is not None:
+                torch.cuda.current_stream().wait_event(snap.ready)
+            frame, cfg = snap.frame, self.render
+            camera = Camera(invert_pose(snap.poses[-1]), frame.intrinsics, frame.width, frame.height, cfg.near, cfg.far)
+            out = self.renderer(snap.gaussians, camera)
+            far = float(frame.depth.max()) or 1.0
+            view = FrameView(
+                index=frame.index,
+                poses=snap.poses.double().cpu().numpy(),
+                intrinsics=frame.intrinsics.double().cpu().numpy(),
+                color=_to_u8(frame.color),
+                depth=colorize_depth(frame.depth.cpu().numpy(), far),
+                rendered_depth=colorize_depth(out.depth.cpu().numpy(), far),
+                silhouette=np.repeat(_to_u8(out.silhouette)[..., None], 3, axis=-1),
+                stats=self._stats(snap),
+            )
+            splats = map_view(snap.gaussians)
+        self.viewer.show_map(splats)
+        self.viewer.show_frame(view)
+
+    def _stats(self, snap: Snapshot) -> str:
+        r = snap.result
+        ms = {k: 1000 * v for k, v in r.seconds.items()}
+        tracking = f"lost ({r.lost})" if r.lost else "ok"
+        return (
+            f"**frame {r.index}** &nbsp; {snap.fps:.1f} fps &nbsp; {r.gaussians:,} Gaussians\n\n"
+            f"tracking {ms['tracking']:.0f} ms, densify {ms['densify']:.0f} ms, mapping {ms['mapping']:.0f} ms "
+            f"(total {ms['total']:.0f} ms)\n\ntracking: {tracking}"
+        )
+
+    def close(self) -> None:
+        """Stop the viewer thread after the update in progress, then the web server."""
+        self.released.set()
+        with contextlib.suppress(queue.Empty):
+            self._handoff.get_nowait()  # a snapshot not yet shown is dropped
+        self._handoff.put(None)
+        self._thread.join(timeout=30)
+        self.viewer.close()
+
+
+def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> ViewerFeed | None:
+    """Start the viewer when `config.viewer.enabled`; -> the observer to give the SLAM stage."""
+    if not config.viewer.enabled:
+        return None
+    viewer = Viewer(config.viewer.host, config.viewer.port, title)
+    return ViewerFeed(viewer, slam.renderer, config.render, config.viewer.max_hz, folder)
+
+
+async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:
+    """A runtime service: once the run is asked to stop, a paused SLAM may go on to finish."""
+    await stop.wait()
+    feed.released.set()
