@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-base presets-tum types pipeline ablations profile memory
+#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
 set -uo pipefail
 out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
 shift
@@ -30,6 +30,7 @@ for part in "$@"; do
                cp /tmp/profile/$loader/profile.txt "$out/profile_tiny_$loader.txt"
                cp /tmp/profile/$loader/metrics.json "$out/profile_tiny_$loader.json"
              done ;;
+    viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done

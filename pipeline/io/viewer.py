@@ -13,10 +13,13 @@ import os
 import signal
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import viser
-import viser.transforms as vtf
+
+if TYPE_CHECKING:  # imported when a viewer is made: runs without one need no viser
+    import viser
+    import viser.transforms as vtf
 
 log = logging.getLogger("gsplatam")
 
@@ -55,6 +58,12 @@ def colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:
     return rgb
 
 
+def _se3(c2w: np.ndarray) -> vtf.SE3:
+    import viser.transforms as vtf
+
+    return vtf.SE3.from_matrix(c2w)
+
+
 class Viewer:
     """A viser server with the scene and the controls. Every method may be called from any
     thread (viser queues messages to its own event loop)."""
@@ -68,6 +77,8 @@ class Viewer:
     ) -> None:
         """`live`: the latest frame's images and the pause, save and stop buttons (for a running
         SLAM; not for a saved map)."""
+        import viser
+
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
         self.server.scene.set_up_direction("-y")  # OpenCV world: y points down
@@ -125,7 +136,7 @@ class Viewer:
         self.stats.content = view.stats
         height, width = view.color.shape[:2]
         fov = 2.0 * np.arctan2(height / 2.0, view.intrinsics[1, 1])
-        pose = vtf.SE3.from_matrix(view.poses[-1])
+        pose = _se3(view.poses[-1])
         self.server.scene.add_camera_frustum(
             "/camera", fov=fov, aspect=width / height, scale=0.15, image=view.color, format="jpeg",
             wxyz=pose.rotation().wxyz, position=pose.translation(), color=(230, 60, 40),
@@ -141,7 +152,7 @@ class Viewer:
 
     def look_from(self, c2w: np.ndarray) -> None:
         """Put every browser's camera (and any that connects later) at `c2w` [4, 4]."""
-        self._camera_pose = vtf.SE3.from_matrix(c2w)
+        self._camera_pose = _se3(c2w)
         for client in self.server.get_clients().values():
             self._place_camera(client)
 
