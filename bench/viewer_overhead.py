@@ -38,7 +38,9 @@ class ViserClient(threading.Thread):
 
         while True:
             try:
-                socket = connect(f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{viser.__version__}"])
+                socket = connect(
+                    f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None
+                )  # a map of 1M Gaussians is a 32 MB message
                 break
             except OSError:
                 time.sleep(0.05)
@@ -102,7 +104,7 @@ def main() -> None:
         f"{gpu}, torch {torch.__version__}, gsplat {report['versions'].get('gsplat')}, commit "
         f"{report['versions'].get('commit')}. Preset {args.preset}, synthetic room, {args.frames} frames, "
         "both runs in one invocation; with the viewer, one websocket client receives everything a browser would "
-        "(viewer.max_hz = 2 map snapshots per second). Means exclude the 2 warm-up frames.",
+        f"(viewer.max_hz = {config.viewer.max_hz:g} snapshots per second). Means exclude the 2 warm-up frames.",
         "",
         "| viewer | ms/frame (SLAM step) | tracking | mapping | frames/s after warm-up | ATE RMSE | messages | MB sent |",
         "|---|---|---|---|---|---|---|---|",

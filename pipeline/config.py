@@ -145,7 +145,7 @@ class ViewerConfig:
     enabled: bool = False
     host: str = "127.0.0.1"  # 0.0.0.0 exposes it to the network: deliberately
     port: int = 8080
-    max_hz: float = 2.0  # map snapshots per second at most (each is a host copy of the map)
+    max_hz: float = 1.0  # snapshots per second at most (each is a host copy of the map; see bench/results/viewer.md)
 
 
 @dataclass(frozen=True)

@@ -267,16 +267,18 @@ def versions() -> dict[str, str | None]:
         found["gsplat"] = version("gsplat")
     except Exception:
         found["gsplat"] = None
-    try:
-        found["commit"] = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        found["commit"] = os.environ.get("GSPLATAM_COMMIT")  # set by bench/gpu_suite.sh where there is no .git
+    found["commit"] = os.environ.get("GSPLATAM_COMMIT")  # set by bench/gpu_suite.sh: a device copy's git is stale
+    if not found["commit"]:
+        try:
+            found["commit"] = subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                check=True,
+                cwd=Path(__file__).parent,
+            ).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            found["commit"] = None
     return found
 
 

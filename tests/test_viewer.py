@@ -55,6 +55,9 @@ class FakeViewer:
         self.maps: list = []
         self.frames: list = []
 
+    def clients(self) -> int:
+        return 1
+
     def show_map(self, view) -> None:
         self.maps.append(view)
 

@@ -95,6 +95,8 @@ class ViewerFeed:
             threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
         if now - self._last < self.period_s or self._handoff.full() or slam.state.gaussians is None:
             return
+        if not self.viewer.clients():
+            return  # nobody is watching: no snapshot
         self._last = now
         g = slam.state.gaussians
         cuda = frame.depth.is_cuda
