@@ -145,7 +145,8 @@ class ViewerConfig:
     enabled: bool = False
     host: str = "127.0.0.1"  # 0.0.0.0 exposes it to the network: deliberately
     port: int = 8080
-    max_hz: float = 1.0  # snapshots per second at most (each is a host copy of the map; see bench/results/viewer.md)
+    max_hz: float = 1.0  # frame snapshots (stats, images, camera) per second at most
+    map_every_s: float = 5.0  # the whole map is sent this often at most (~32 bytes per Gaussian; viewer.md)
 
 
 @dataclass(frozen=True)
@@ -333,7 +334,7 @@ def validate(config: Config) -> None:
         (0.0 < config.render.near < config.render.far, "need 0 < render.near < render.far"),
         ((config.live.width > 0) == (config.live.height > 0), "set both live.width and live.height"),
         (config.live.save_every_s > 0, "live.save_every_s must be > 0"),
-        (config.viewer.max_hz > 0, "viewer.max_hz must be > 0"),
+        (config.viewer.max_hz > 0 and config.viewer.map_every_s >= 0, "viewer rates must be positive"),
         (0 < config.live.retry_initial_s <= config.live.retry_max_s, "need 0 < live.retry_initial_s <= retry_max_s"),
         (config.live.connect_timeout_s > 0 and config.live.stall_timeout_s > 0, "live timeouts must be > 0"),
     ]

@@ -64,9 +64,17 @@ class ViewerFeed:
     (pausing holds SLAM at a frame boundary; saving writes map.ply from a host copy in a thread)."""
 
     def __init__(
-        self, viewer: Viewer, renderer: Renderer, render: RenderConfig, max_hz: float, folder: RunFolder
+        self,
+        viewer: Viewer,
+        renderer: Renderer,
+        render: RenderConfig,
+        max_hz: float,
+        folder: RunFolder,
+        map_every_s: float = 0.0,
     ) -> None:
         self.viewer = viewer
+        self.map_every_s = map_every_s
+        self._map_sent = -float("inf")
         self.folder = folder
         self.renderer = renderer
         self.render = render
@@ -148,8 +156,12 @@ class ViewerFeed:
                 silhouette=np.repeat(_to_u8(out.silhouette)[..., None], 3, axis=-1),
                 stats=self._stats(snap),
             )
-            splats = map_view(snap.gaussians)
-        self.viewer.show_map(splats)
+            splats = None
+            if time.monotonic() - self._map_sent >= self.map_every_s:
+                splats = map_view(snap.gaussians)  # the costly part: a host copy, packing and sending
+                self._map_sent = time.monotonic()
+        if splats is not None:
+            self.viewer.show_map(splats)
         self.viewer.show_frame(view)
 
     def _stats(self, snap: Snapshot) -> str:
@@ -177,7 +189,8 @@ def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) 
     if not config.viewer.enabled:
         return None
     viewer = Viewer(config.viewer.host, config.viewer.port, title)
-    return ViewerFeed(viewer, slam.renderer, config.render, config.viewer.max_hz, folder)
+    v = config.viewer
+    return ViewerFeed(viewer, slam.renderer, config.render, v.max_hz, folder, v.map_every_s)
 
 
 async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:
