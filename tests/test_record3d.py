@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -180,10 +181,12 @@ class PhoneThread:
         self.thread.join(timeout=10)
 
 
-async def _receive(url: str, count: int, config: LiveConfig = FAST) -> tuple[list[Record3DPacket], Record3DSource]:
+async def _receive(
+    url: str, count: int, config: LiveConfig = FAST, seconds: float = 60.0
+) -> tuple[list[Record3DPacket], Record3DSource]:
     source = Record3DSource(url, config)
     packets = []
-    async with asyncio.timeout(60):
+    async with asyncio.timeout(seconds):
         async for packet in source:
             packets.append(packet)
             if len(packets) == count:
@@ -356,3 +359,36 @@ def test_daemon_reconstructs_from_the_fake_phone_and_survives_a_reconnect(
     assert metrics["counters"]["connections"] >= 2
     assert (folder / "map.ply").stat().st_size > 1000 and (folder / "checkpoint.pt").exists()
     assert "retrying" in log_path.read_text()
+
+
+def test_a_phone_that_stops_sending_is_detected_and_retried(phone_dataset: Dataset, caplog) -> None:
+    """The phone goes silent without closing (the end of a non-looping fake stream): the stall
+    timeout ends the session, and the retries get a specific refusal, never a hang."""
+
+    async def main() -> None:
+        phone = FakePhone(phone_dataset, fps=60)
+        port = await phone.start("127.0.0.1", 0)
+        try:
+            with caplog.at_level(logging.WARNING, "gsplatam"), pytest.raises(TimeoutError):
+                url, count = f"http://127.0.0.1:{port}", len(phone_dataset) + 10
+                await _receive(url, count, replace(FAST, stall_timeout_s=0.5), seconds=5.0)
+        finally:
+            await phone.stop()
+
+    asyncio.run(main())
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("no frame for 0.5 s" in m for m in messages)
+    assert any("503" in m and "streamed to its end" in m for m in messages)
+
+
+def test_the_daemon_stops_cleanly_while_waiting_for_an_absent_phone(tmp_path: Path) -> None:
+    command = [
+        sys.executable, "-m", "pipeline", "serve", "--record3d", f"http://127.0.0.1:{free_port()}",
+        "--device", "cpu", "--output", str(tmp_path), "--quiet", "--set", "live.status_port=0",
+    ]  # fmt: skip
+    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    time.sleep(4)
+    daemon.send_signal(signal.SIGINT)
+    output, _ = daemon.communicate(timeout=30)
+    assert daemon.returncode == 0, output
+    assert "cannot connect" in output and "nothing to save" in output
