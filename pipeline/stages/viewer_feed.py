@@ -18,6 +18,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from pipeline.config import Config, RenderConfig
 from pipeline.frame import DeviceFrame
@@ -28,6 +29,8 @@ from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.splatam import FrameResult, SplaTAM
 
 log = logging.getLogger("gsplatam")
+
+DISPLAY_WIDTH = 320  # pixels: the images in the viewer's panel (and the frustum's) are this wide at most
 
 
 def map_view(gaussians: Gaussians) -> MapView:
@@ -143,15 +146,24 @@ class ViewerFeed:
             if snap.ready is not None:
                 torch.cuda.current_stream().wait_event(snap.ready)
             frame, cfg = snap.frame, self.render
-            camera = Camera(invert_pose(snap.poses[-1]), frame.intrinsics, frame.width, frame.height, cfg.near, cfg.far)
-            out = self.renderer(snap.gaussians, camera)
-            far = float(frame.depth.max()) or 1.0
+            scale = min(1.0, DISPLAY_WIDTH / frame.width)  # the panel shows thumbnails: render and send them
+            width, height = max(1, round(frame.width * scale)), max(1, round(frame.height * scale))
+            intrinsics = frame.intrinsics.clone()
+            intrinsics[:2] *= torch.tensor([[width / frame.width], [height / frame.height]], device=intrinsics.device)
+            out = self.renderer(
+                snap.gaussians, Camera(invert_pose(snap.poses[-1]), intrinsics, width, height, cfg.near, cfg.far)
+            )
+            color = F.interpolate(frame.color.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(
+                1, 2, 0
+            )
+            depth = F.interpolate(frame.depth[None, None], size=(height, width), mode="nearest")[0, 0]
+            far = float(depth.max()) or 1.0
             view = FrameView(
                 index=frame.index,
                 poses=snap.poses.double().cpu().numpy(),
-                intrinsics=frame.intrinsics.double().cpu().numpy(),
-                color=_to_u8(frame.color),
-                depth=colorize_depth(frame.depth.cpu().numpy(), far),
+                intrinsics=intrinsics.double().cpu().numpy(),
+                color=_to_u8(color),
+                depth=colorize_depth(depth.cpu().numpy(), far),
                 rendered_depth=colorize_depth(out.depth.cpu().numpy(), far),
                 silhouette=np.repeat(_to_u8(out.silhouette)[..., None], 3, axis=-1),
                 stats=self._stats(snap),
