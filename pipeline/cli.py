@@ -44,7 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     run = sub.add_parser("run", help="SLAM on a dataset (default: a generated synthetic room)")
-    run.add_argument("dataset", nargs="?", help="dataset folder, Replica or TUM layout (default: synthetic room)")
+    run.add_argument(
+        "dataset", nargs="?",
+        help="dataset folder, Replica or TUM layout (default: synthetic room); or live, without recording: "
+        "record3d:URL or nerfcapture:",
+    )  # fmt: skip
     _add_config_options(run)
     run.add_argument("--name", help="run folder name under --output")
     run.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its checkpoint")
@@ -142,6 +146,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     from pipeline.run import format_table, run_slam
 
     config = _config_from(args)
+    if args.dataset and args.dataset.startswith(LIVE_SCHEMES):
+        if args.resume or args.profile or config.run.loader == "sync":
+            raise UserError("a live input takes none of --resume, --profile, --loader sync")
+        return _serve_live(args.dataset, config, progress=not args.quiet)
     if not config.dataset.path:
         log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
     result = run_slam(
@@ -203,11 +211,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _live_input(args: argparse.Namespace, config):
+LIVE_SCHEMES = ("record3d:", "nerfcapture:")  # `run record3d:http://PHONE` / `run nerfcapture:`: no recording
+
+
+def _live_input(spec: str, config):
+    """`record3d:URL` or `nerfcapture:` -> the live source and its decoder."""
     from pipeline.devices import live_max_width, resolve_device
     from pipeline.serve import LiveInput
 
-    if args.nerfcapture:
+    if spec.startswith("nerfcapture:"):
         from pipeline.io.nerfcapture import NeRFCaptureDecoder, NeRFCaptureSource
 
         nerfcapture = NeRFCaptureSource()
@@ -215,22 +227,29 @@ def _live_input(args: argparse.Namespace, config):
         return LiveInput("nerfcapture", nerfcapture, nerfcapture.policy, decoder, nerfcapture.counters)
     from pipeline.io.record3d import Record3DDecoder, Record3DSource
 
-    record3d = Record3DSource(args.record3d, config.live)
+    url = spec.removeprefix("record3d:")
+    if not url:
+        raise UserError("record3d: needs the phone's address, e.g. record3d:http://192.168.1.20")
+    record3d = Record3DSource(url, config.live)
     size = (config.live.width, config.live.height) if config.live.width else None
     decoder = Record3DDecoder(record3d.counters, size, live_max_width(resolve_device(config.run.device)))
     return LiveInput("record3d", record3d, record3d.policy, decoder, record3d.counters)
 
 
-def cmd_serve(args: argparse.Namespace) -> int:
+def _serve_live(spec: str, config, progress: bool) -> int:
     from pipeline.serve import serve
 
-    config = _config_from(args)
-    live = _live_input(args, config)
-    log.info("serving %s -> SLAM; Ctrl-C saves and stops", args.record3d or "NeRFCapture over DDS")
-    result = serve(config, live, progress=not args.quiet)
+    live = _live_input(spec, config)
+    log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
+    result = serve(config, live, progress=progress)
     if result.metrics is not None:
         print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians: {result.folder.path}/")
     return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    spec = "nerfcapture:" if args.nerfcapture else f"record3d:{args.record3d}"
+    return _serve_live(spec, _config_from(args), progress=not args.quiet)
 
 
 # The default scene of the fake phone: 256x192 is the iPhone LiDAR's depth resolution; 10 s at 30 fps.

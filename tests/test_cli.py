@@ -37,6 +37,8 @@ def test_help_everywhere(command: list[str], capsys) -> None:
         (["run", "--config", "/no/such.toml"], "config file not found"),
         (["synth", "x", "--layout", "replica", "--holes", "0.1"], "apply to the TUM layout only"),
         (["serve", "--record3d", "x", "--set", "live.retry_max_s=0"], "retry_initial_s <= retry_max_s"),
+        (["run", "record3d:"], "needs the phone's address"),
+        (["run", "nerfcapture:", "--loader", "sync"], "a live input takes none of"),
     ],
 )
 def test_user_errors_are_one_line_and_exit_2(argv: list[str], message: str, capsys, tmp_path: Path) -> None:

@@ -164,11 +164,12 @@ def test_loopback_receives_every_frame_bit_identical(capture_dataset: Dataset) -
         assert np.abs(packet.c2w - frame.c2w_gt).max() < 1e-6
 
 
-def test_serve_reconstructs_live_from_the_fake_publisher(capture_dataset: Dataset, tmp_path: Path) -> None:
+@pytest.mark.parametrize("how", [["serve", "--nerfcapture"], ["run", "nerfcapture:"]])
+def test_live_reconstruction_from_the_fake_publisher(capture_dataset: Dataset, tmp_path: Path, how) -> None:
     status_port = free_port()
     log_path = tmp_path / "daemon.log"
     command = [
-        sys.executable, "-m", "pipeline", "serve", "--nerfcapture", "--device", "cpu", "--preset", "tiny",
+        sys.executable, "-m", "pipeline", *how, "--device", "cpu", "--preset", "tiny",
         "--output", str(tmp_path), "--name", "live", "--quiet", "--set", f"live.status_port={status_port}",
     ]  # fmt: skip
     stop = threading.Event()
