@@ -360,7 +360,7 @@ def _terminate_as_interrupt(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
-    for chatty in ("aioice", "aiortc"):  # per-candidate ICE logs at INFO
+    for chatty in ("aioice", "aiortc", "websockets"):  # per-candidate ICE and per-connection logs at INFO
         logging.getLogger(chatty).setLevel(logging.WARNING)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
