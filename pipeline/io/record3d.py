@@ -103,6 +103,7 @@ class Record3DSession:
     _pc: RTCPeerConnection | None = None
     _video: asyncio.Future[MediaStreamTrack] | None = None
     _sinks: list[MediaBlackhole] = field(default_factory=list)
+    _sink_starts: list[asyncio.Task[None]] = field(default_factory=list)  # held: the loop keeps only weak refs
 
     async def open(self) -> None:
         timeout = aiohttp.ClientTimeout(total=HTTP_TIMEOUT_S)
@@ -134,7 +135,7 @@ class Record3DSession:
             sink = MediaBlackhole()
             sink.addTrack(track)
             self._sinks.append(sink)
-            asyncio.get_running_loop().create_task(sink.start())
+            self._sink_starts.append(asyncio.get_running_loop().create_task(sink.start()))
 
     async def frames(self) -> AsyncIterator[av.VideoFrame]:
         """Decoded video frames until the phone stops or stalls. The first frame may take a while:
@@ -157,9 +158,12 @@ class Record3DSession:
 
     async def close(self) -> None:
         pc, self._pc = self._pc, None
+        for start in self._sink_starts:
+            start.cancel()
         for sink in self._sinks:
             await sink.stop()
         self._sinks.clear()
+        self._sink_starts.clear()
         if pc is not None:
             await pc.close()
 
