@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -192,3 +193,16 @@ def test_live_reconstruction_from_the_fake_publisher(capture_dataset: Dataset, t
     by_time = {round(r.timestamp, 6): r.c2w_gt for r in capture_dataset.refs}
     reference = np.stack([by_time[round(t, 6)][:3, 3] for t in rows[:, 0]])
     assert np.sqrt(np.mean(np.sum((rows[:, 1:4] - reference) ** 2, axis=1))) < 0.05  # metres, no alignment
+
+
+def test_no_publisher_is_said_clearly_and_waited_for(caplog) -> None:
+    async def listen() -> None:
+        async for _ in NeRFCaptureSource():
+            pass
+
+    async def main() -> None:
+        with caplog.at_level(logging.INFO, "gsplatam"), pytest.raises(TimeoutError):
+            await asyncio.wait_for(listen(), 1.5)
+
+    asyncio.run(main())
+    assert "waiting for a publisher on DDS domain 0, topic 'Frames'" in caplog.text
