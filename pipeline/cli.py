@@ -21,7 +21,9 @@ class Parser(argparse.ArgumentParser):
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", help="tiny, small, base or tum (default: base on a GPU, tiny on the CPU)")
+    parser.add_argument(
+        "--preset", help="tiny, small, base or tum (default: base on a GPU, tiny on the CPU and for live input)"
+    )
     parser.add_argument("--config", metavar="FILE", help="TOML file of settings (applied after the preset)")
     parser.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
@@ -124,7 +126,8 @@ def _config_from(args: argparse.Namespace):
         config_file = config_file or str(Path(args.resume) / "config.toml")
         if not Path(config_file).exists():
             raise UserError(f"no config.toml in {args.resume}: is it a run folder?")
-    preset = args.preset or default_preset(resolve_device(args.device or "auto"))
+    live = args.command == "serve" or str(getattr(args, "dataset", "") or "").startswith(LIVE_SCHEMES)
+    preset = args.preset or default_preset(resolve_device(args.device or "auto"), live)
     config = load_config(preset, config_file, args.overrides)
     if getattr(args, "dataset", None):
         config = with_value(config, "dataset.path", args.dataset)

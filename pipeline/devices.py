@@ -36,8 +36,10 @@ def live_max_width(device: torch.device) -> int:
     return 0 if device.type == "cuda" else LIVE_MAX_WIDTH_CPU
 
 
-def default_preset(device: torch.device) -> str:
-    return "base" if device.type == "cuda" else DEFAULT_PRESET_CPU
+def default_preset(device: torch.device, live: bool = False) -> str:
+    """base on a GPU for datasets; tiny on the CPU, and for live input everywhere (the only preset
+    near camera rate: see README's performance table)."""
+    return "base" if device.type == "cuda" and not live else DEFAULT_PRESET_CPU
 
 
 def describe(device: torch.device, config: Config) -> str:

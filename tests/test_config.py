@@ -85,3 +85,13 @@ def test_bad_config_file(tmp_path) -> None:
     bad.write_text("[tracking\niters = 3")
     with pytest.raises(UserError, match="cannot read config file"):
         load_config("base", bad)
+
+
+def test_live_input_defaults_to_the_preset_near_camera_rate() -> None:
+    import torch
+
+    from pipeline.devices import default_preset
+
+    assert default_preset(torch.device("cuda")) == "base"
+    assert default_preset(torch.device("cuda"), live=True) == "tiny"
+    assert default_preset(torch.device("cpu")) == "tiny"
