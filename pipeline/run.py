@@ -7,7 +7,7 @@ import math
 import os
 import platform
 import subprocess
-from collections.abc import Callable
+from collections.abc import AsyncIterable, Callable
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -21,6 +21,7 @@ from tqdm import tqdm
 from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device, synthetic_for
 from pipeline.errors import UserError
+from pipeline.frame import Frame
 from pipeline.io.dataset import Dataset, open_dataset
 from pipeline.io.run_folder import RunFolder
 from pipeline.io.synth_writer import cached_synthetic
@@ -29,11 +30,12 @@ from pipeline.profiling import all_threads_config, summarise
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, execute
 from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.stages.queues import Policy
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import SlamStep
+from pipeline.stages.slam import FrameObserver, SlamStep
 from pipeline.stages.source import DatasetSource
 from pipeline.stages.upload import make_uploader
-from pipeline.stages.viewer_feed import attach_viewer, release_on_stop
+from pipeline.stages.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
 
@@ -88,19 +90,10 @@ def run_slam(
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
-    uploader = make_uploader(device, slots=config.run.queue_size + 2)
     sink = ResultSink(folder, total=len(dataset), initial=start_at, progress=progress)
     viewer = attach_viewer(config, slam, folder, f"gsplatam: {dataset.name}")
-    graph = Graph(
-        source=DatasetSource(dataset, start_at),
-        source_policy=DatasetSource.policy,
-        decode=partial(in_profiler_range, "decode", dataset.decode),
-        upload=partial(in_profiler_range, "upload", uploader),
-        slam=SlamStep(slam, last_index=len(dataset) - 1, observers=[viewer] if viewer else []),
-        sink=sink,
-        queue_size=config.run.queue_size,
-        services=[partial(release_on_stop, viewer)] if viewer else [],
-    )
+    source = DatasetSource(dataset, start_at)
+    graph = slam_graph(config, slam, source, source.policy, dataset.decode, sink, len(dataset) - 1, [], viewer)
     try:
         report = _execute(graph, config, folder, profile_trace, device)
     finally:
@@ -114,6 +107,32 @@ def run_slam(
         raise UserError("no frame was processed")
     metrics = _finish(config, dataset, folder, slam, sink, report, device, progress)
     return RunResult(folder, metrics)
+
+
+def slam_graph(
+    config: Config,
+    slam: SplaTAM,
+    source: AsyncIterable[Any],
+    policy: Policy,
+    decode: Callable[[Any], Frame | None],
+    sink: ResultSink,
+    last_index: int | None,
+    observers: list[FrameObserver],
+    viewer: ViewerFeed | None,
+) -> Graph:
+    """The graph `run` and `serve` drive: source -> decode -> upload -> SLAM (with its
+    frame-boundary observers, the viewer's last) -> sink, each stage in its profiler range."""
+    uploader = make_uploader(slam.device, slots=config.run.queue_size + 2)
+    return Graph(
+        source=source,
+        source_policy=policy,
+        decode=partial(in_profiler_range, "decode", decode),
+        upload=partial(in_profiler_range, "upload", uploader),
+        slam=SlamStep(slam, last_index, observers=observers + ([viewer] if viewer else [])),
+        sink=sink,
+        queue_size=config.run.queue_size,
+        services=[partial(release_on_stop, viewer)] if viewer else [],
+    )
 
 
 def _execute(

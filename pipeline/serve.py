@@ -24,15 +24,13 @@ from pipeline.io.run_folder import RunFolder
 from pipeline.io.status_http import serve_status
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import make_renderer, resolve_backend
-from pipeline.run import in_profiler_range, timing_summary, versions
+from pipeline.run import slam_graph, timing_summary, versions
 from pipeline.runtime import Graph, execute
 from pipeline.slam.splatam import FrameResult, SplaTAM
 from pipeline.stages.periodic_save import PeriodicSave
 from pipeline.stages.queues import Policy
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import SlamStep
-from pipeline.stages.upload import make_uploader
-from pipeline.stages.viewer_feed import attach_viewer, release_on_stop
+from pipeline.stages.viewer_feed import attach_viewer
 
 log = logging.getLogger("gsplatam")
 
@@ -67,7 +65,7 @@ def live_ate_cm(results: list[FrameResult]) -> float | None:
     return 100 * absolute_trajectory_error(estimated, reference).rmse_m
 
 
-def status_reader(live: LiveInput, graph: Graph, sink: ResultSink, slam: SplaTAM) -> Callable[[], dict[str, Any]]:
+def status_reader(live: LiveInput, graph: Graph, sink: ResultSink) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
 
     def read() -> dict[str, Any]:
@@ -104,20 +102,10 @@ def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
     saver = PeriodicSave(folder, config.live.save_every_s)
     sink = ResultSink(folder, total=None, progress=progress)
-    uploader = make_uploader(device, slots=config.run.queue_size + 2)
     viewer = attach_viewer(config, slam, folder, f"gsplatam: live {live.name}")
-    graph = Graph(
-        source=live.source,
-        source_policy=live.policy,
-        decode=partial(in_profiler_range, "decode", live.decode),
-        upload=partial(in_profiler_range, "upload", uploader),
-        slam=SlamStep(slam, last_index=None, observers=[saver] + ([viewer] if viewer else [])),
-        sink=sink,
-        queue_size=config.run.queue_size,
-        services=[partial(release_on_stop, viewer)] if viewer else [],
-    )
+    graph = slam_graph(config, slam, live.source, live.policy, live.decode, sink, None, [saver], viewer)
     if config.live.status_port:
-        read = status_reader(live, graph, sink, slam)
+        read = status_reader(live, graph, sink)
         graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
     try:
         report = execute(graph, "pipelined")

@@ -43,8 +43,8 @@ class FrameView:
     intrinsics: np.ndarray  # [3, 3] pixels
     color: np.ndarray  # [H, W, 3] uint8 input colour
     depth: np.ndarray  # [H, W, 3] uint8 input depth, colour-mapped
-    rendered_depth: np.ndarray | None  # [H, W, 3] uint8 colour-mapped, None when not rendered this time
-    silhouette: np.ndarray | None  # [H, W, 3] uint8
+    rendered_depth: np.ndarray  # [H, W, 3] uint8 colour-mapped, at the latest estimated pose
+    silhouette: np.ndarray  # [H, W, 3] uint8
     stats: str  # markdown
 
 
@@ -142,9 +142,12 @@ class Viewer:
             wxyz=pose.rotation().wxyz, position=pose.translation(), color=(230, 60, 40),
         )  # fmt: skip
         self.show_trajectory(view.poses)
-        images = {"input colour": view.color, "input depth": view.depth}
-        if view.rendered_depth is not None and view.silhouette is not None:
-            images.update({"rendered depth": view.rendered_depth, "silhouette": view.silhouette})
+        images = {
+            "input colour": view.color,
+            "input depth": view.depth,
+            "rendered depth": view.rendered_depth,
+            "silhouette": view.silhouette,
+        }
         for name, image in images.items():
             self.images[name].image = image
         if self.follow.value or self._camera_pose is None:

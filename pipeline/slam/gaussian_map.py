@@ -56,6 +56,12 @@ def detached(gaussians: Gaussians) -> Gaussians:
     return Gaussians(*(getattr(gaussians, name).detach() for name in PARAMETER_NAMES))
 
 
+def copied(gaussians: Gaussians, device: torch.device | str | None = None) -> Gaussians:
+    """Detached copies (on `device`, default where they are): a snapshot SLAM's later in-place
+    updates do not touch."""
+    return Gaussians(*(getattr(gaussians, n).detach().to(device, copy=True) for n in PARAMETER_NAMES))
+
+
 def concatenate(a: Gaussians, b: Gaussians) -> Gaussians:
     return Gaussians(*(torch.cat([getattr(a, n).detach(), getattr(b, n).detach()]) for n in PARAMETER_NAMES))
 

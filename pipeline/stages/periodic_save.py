@@ -27,7 +27,6 @@ class PeriodicSave:
         self._last = time.monotonic()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="save")
         self._pending: Future[None] | None = None
-        self.saves = 0
 
     def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
         self.timestamps.append(result.timestamp)
@@ -38,7 +37,6 @@ class PeriodicSave:
     def _write(self, state: dict, timestamps: np.ndarray) -> None:
         try:
             self.folder.write_state(state, timestamps, None)
-            self.saves += 1
             log.info(
                 "saved %d frames and %d Gaussians to %s",
                 len(timestamps),

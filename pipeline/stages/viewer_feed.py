@@ -14,7 +14,7 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -26,6 +26,7 @@ from pipeline.geometry import invert_pose, quat_to_rotmat
 from pipeline.io.run_folder import RunFolder
 from pipeline.io.viewer import FrameView, MapView, Viewer, colorize_depth
 from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.gaussian_map import copied
 from pipeline.slam.splatam import FrameResult, SplaTAM
 
 log = logging.getLogger("gsplatam")
@@ -101,18 +102,16 @@ class ViewerFeed:
             pass  # paused from the browser
         if self.viewer.save_requested.is_set() and slam.state.gaussians is not None:
             self.viewer.save_requested.clear()
-            g = slam.state.gaussians
-            host = Gaussians(*(getattr(g, f.name).detach().to("cpu", copy=True) for f in fields(Gaussians)))
+            host = copied(slam.state.gaussians, "cpu")
             threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
         if now - self._last < self.period_s or self._handoff.full() or slam.state.gaussians is None:
             return
         if not self.viewer.clients():
             return  # nobody is watching: no snapshot
         self._last = now
-        g = slam.state.gaussians
         cuda = frame.depth.is_cuda
         snapshot = Snapshot(
-            gaussians=Gaussians(*(getattr(g, f.name).detach().clone() for f in fields(Gaussians))),
+            gaussians=copied(slam.state.gaussians),
             poses=torch.stack(slam.state.poses),
             frame=frame,
             result=result,
