@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
+#   bash bench/gpu_suite.sh OUT_DIR parity ssim presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
 set -uo pipefail
 out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
 shift
@@ -13,7 +13,7 @@ export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:-}
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
 bench() { python3 -m pipeline bench --quiet --out "$out" --runs /tmp/runs "$@" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
 for part in "$@"; do
-  echo "== $part"
+  echo "== $part (suite at ${SECONDS}s)"
   case $part in
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     presets-fast) bench synthetic synthetic-tum "$tum" --presets tiny,small --stem presets_fast ;;
@@ -30,7 +30,9 @@ for part in "$@"; do
                cp /tmp/profile/$loader/profile.txt "$out/profile_tiny_$loader.txt"
                cp /tmp/profile/$loader/metrics.json "$out/profile_tiny_$loader.json"
              done ;;
+    ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done
+echo "== done (suite at ${SECONDS}s)"

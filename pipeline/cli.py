@@ -167,6 +167,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from pipeline.config import SyntheticConfig
+    from pipeline.devices import resolve_device
     from pipeline.io.synth_writer import write_synthetic
 
     config = SyntheticConfig(
@@ -182,7 +183,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         holes=args.holes,
         time_jitter=args.time_jitter,
     )
-    count = write_synthetic(Path(args.out), config, not args.quiet)
+    count = write_synthetic(Path(args.out), config, not args.quiet, resolve_device("auto"))
     print(f"wrote {count} frames ({args.width}x{args.height}, {args.layout} layout) to {args.out}")
     return 0
 

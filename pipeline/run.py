@@ -53,7 +53,7 @@ def prepare_dataset(config: Config, device: torch.device, output: Path, progress
     dataset_config = config.dataset
     if not dataset_config.path:
         synthetic = synthetic_for(config.synthetic, device)
-        path = cached_synthetic(output / "synthetic", synthetic, progress)
+        path = cached_synthetic(output / "synthetic", synthetic, progress, device)
         dataset_config = replace(dataset_config, path=str(path), format=synthetic.layout)
         config = replace(config, synthetic=synthetic, dataset=dataset_config)
     dataset = open_dataset(dataset_config)

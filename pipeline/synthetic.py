@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -20,6 +20,7 @@ ROOM_HALF = (3.0, 2.5)  # room half-extent in x and y
 ROOM_HEIGHT = 2.6
 PATH_CENTRE = (0.0, 0.0, 1.4)
 NO_HIT = 1e9
+CPU = torch.device("cpu")
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,9 @@ class Scene:
     colors: torch.Tensor  # [K, 2, 3] two colours per object in [0, 1]
     checker: torch.Tensor  # [K] checker cell size, metres
     stripe_dir: torch.Tensor  # [K, 3] stripe wave vector, radians per metre
+
+    def to(self, device: torch.device) -> Scene:
+        return Scene(*(getattr(self, f.name).to(device) for f in fields(self)))
 
 
 def make_scene(seed: int) -> Scene:
@@ -172,10 +176,11 @@ def cast(
     per ray is found first and normals are computed only for the winners.
     """
     height, width = dirs.shape[:2]
-    room_lo = torch.tensor([-ROOM_HALF[0], -ROOM_HALF[1], 0.0])
-    room_hi = torch.tensor([ROOM_HALF[0], ROOM_HALF[1], ROOM_HEIGHT])
+    device = dirs.device
+    room_lo = torch.tensor([-ROOM_HALF[0], -ROOM_HALF[1], 0.0], device=device)
+    room_hi = torch.tensor([ROOM_HALF[0], ROOM_HALF[1], ROOM_HEIGHT], device=device)
     best_t = _slab(origin, dirs.reshape(-1, 3), room_lo, room_hi, inside=True).reshape(height, width)
-    best_id = torch.zeros(height, width, dtype=torch.long)
+    best_id = torch.zeros(height, width, dtype=torch.long, device=device)
     objects = _object_bounds(scene)
     for obj, ((kind, params, _), (v0, v1, u0, u1)) in enumerate(zip(objects, rects), start=1):
         if v0 == v1:
@@ -220,7 +225,7 @@ def cast(
         else:
             radial = torch.cat([(p[:, :2] - params[:2]) / params[4], torch.zeros_like(p[:, :1])], dim=1)
             on_cap = (p[:, 2:] - params[3]).abs() < 1e-4
-            normal[mask] = torch.where(on_cap, torch.tensor([0.0, 0.0, 1.0]), radial)
+            normal[mask] = torch.where(on_cap, torch.tensor([0.0, 0.0, 1.0], device=device), radial)
     return best_t, shade(scene, point, normal, flat_id).reshape(height, width, 3)
 
 
@@ -232,7 +237,7 @@ def shade(scene: Scene, point: torch.Tensor, normal: torch.Tensor, ids: torch.Te
     mix = (0.55 * checker + 0.45 * stripes)[:, None]
     pair = scene.colors[ids]
     albedo = pair[:, 0] * mix + pair[:, 1] * (1 - mix)
-    light = torch.tensor([0.4, 0.3, 0.87])
+    light = torch.tensor([0.4, 0.3, 0.87], device=point.device)
     diffuse = (normal * light).sum(1).abs()[:, None]
     return albedo * (0.5 + 0.5 * diffuse)
 
@@ -242,17 +247,21 @@ def render_view(
 ) -> tuple[np.ndarray, np.ndarray]:
     """-> (colour [H, W, 3] uint8, depth [H, W] float32 metres) seen by camera-to-world `c2w`.
 
-    Colour averages `supersample` x `supersample` rays per pixel; depth is the pixel centre's.
+    Rays are cast on the scene's device. Colour averages `supersample` x `supersample` rays per
+    pixel; depth is the pixel centre's.
     """
+    device = scene.colors.device
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
-    rotation = torch.tensor(c2w[:3, :3], dtype=torch.float32)
-    origin = torch.tensor(c2w[:3, 3], dtype=torch.float32)
+    rotation = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=device)
+    origin = torch.tensor(c2w[:3, 3], dtype=torch.float32, device=device)
     v, u = torch.meshgrid(
-        torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32), indexing="ij"
+        torch.arange(height, dtype=torch.float32, device=device),
+        torch.arange(width, dtype=torch.float32, device=device),
+        indexing="ij",
     )
 
     w2c = torch.tensor(np.linalg.inv(c2w), dtype=torch.float32)
-    rects = [_screen_rect(bounds, w2c, intrinsics, width, height) for _, _, bounds in _object_bounds(scene)]
+    rects = [_screen_rect(bounds.cpu(), w2c, intrinsics, width, height) for _, _, bounds in _object_bounds(scene)]
 
     def cast_at(ox: float, oy: float) -> tuple[torch.Tensor, torch.Tensor]:
         cam = torch.stack([(u + ox - cx) / fx, (v + oy - cy) / fy, torch.ones_like(u)], dim=-1)
@@ -263,12 +272,15 @@ def render_view(
         offsets = [(k + 0.5) / supersample for k in range(supersample)]
         color = sum(cast_at(ox, oy)[1] for oy in offsets for ox in offsets) / supersample**2
     color = color.clamp(0, 1)
-    return (color * 255 + 0.5).to(torch.uint8).numpy(), depth.numpy().astype(np.float32)
+    return (color * 255 + 0.5).to(torch.uint8).cpu().numpy(), depth.cpu().numpy().astype(np.float32)
 
 
-def sequence(config: SyntheticConfig) -> tuple[np.ndarray, Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
-    """-> (intrinsics [3, 3], an iterator of (colour, depth, camera-to-world) per frame)."""
-    scene = make_scene(config.seed)
+def sequence(
+    config: SyntheticConfig, device: torch.device = CPU
+) -> tuple[np.ndarray, Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """-> (intrinsics [3, 3], an iterator of (colour, depth, camera-to-world) per frame), ray cast
+    on `device` (a GPU generates a 1200x680 frame in milliseconds, a CPU core in a tenth of a second)."""
+    scene = make_scene(config.seed).to(device)
     poses = trajectory(config, config.frames)
     intrinsics = default_intrinsics(config.width, config.height)
     supersample = 2 if config.width * config.height <= 320 * 240 else 1

@@ -7,13 +7,14 @@ from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 
+import torch
 from tqdm import tqdm
 
 from pipeline.config import SyntheticConfig
 from pipeline.errors import UserError
 from pipeline.io.replica import write_replica
 from pipeline.io.tum import write_tum
-from pipeline.synthetic import sequence
+from pipeline.synthetic import CPU, sequence
 
 MANIFEST = "synthetic.json"
 
@@ -22,16 +23,17 @@ def _with_progress(frames: Iterator, total: int, progress: bool) -> Iterator:
     yield from tqdm(frames, total=total, unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
 
 
-def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True) -> int:
-    """Generate `config.frames` frames and write them under `path` in `config.layout`; -> frames
-    written. A manifest records the parameters, so a cached folder is reused only when it matches."""
+def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, device: torch.device = CPU) -> int:
+    """Generate `config.frames` frames (ray cast on `device`) and write them under `path` in
+    `config.layout`; -> frames written. A manifest records the parameters, so a cached folder is
+    reused only when it matches."""
     if config.frames <= 0 or config.width <= 0 or config.height <= 0:
         raise UserError("synthetic frames, width and height must be positive")
     if config.layout not in ("replica", "tum"):
         raise UserError(f"unknown layout '{config.layout}' (choose replica or tum)")
     if config.layout == "replica" and (config.depth_noise or config.holes or config.time_jitter):
         raise UserError("depth noise, holes and timestamp jitter apply to the TUM layout only")
-    intrinsics, frames = sequence(config)
+    intrinsics, frames = sequence(config, device)
     frames = _with_progress(frames, config.frames, progress)
     if config.layout == "replica":
         count = write_replica(path, frames, intrinsics)
@@ -43,7 +45,7 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True) 
     return count
 
 
-def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True) -> Path:
+def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True, device: torch.device = CPU) -> Path:
     """The folder of the synthetic sequence for `config`, generated on first use."""
     key = f"room_s{config.seed}_{config.width}x{config.height}_{config.frames}f_v{config.speed:g}_j{config.jitter:g}"
     if config.layout == "tum":
@@ -52,5 +54,5 @@ def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True)
     manifest = path / MANIFEST
     if manifest.exists() and json.loads(manifest.read_text()) == json.loads(json.dumps(asdict(config))):
         return path
-    write_synthetic(path, config, progress=progress)
+    write_synthetic(path, config, progress, device)
     return path
