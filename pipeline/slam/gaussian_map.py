@@ -26,8 +26,9 @@ def seed_gaussians(
     scale: depth / mean focal length (one pixel's footprint), repeated when anisotropic.
     """
     u, v = pixel_grid(depth.shape[0], depth.shape[1], depth.device)
-    z = depth[mask]
-    means = backproject(u[mask], v[mask], z, intrinsics, c2w)
+    pixels = mask.reshape(-1).nonzero()[:, 0]  # one read-back of the count, shared by every gather
+    z = depth.reshape(-1)[pixels]
+    means = backproject(u.reshape(-1)[pixels], v.reshape(-1)[pixels], z, intrinsics, c2w)
     n = means.shape[0]
     focal = (intrinsics[0, 0] + intrinsics[1, 1]) / 2
     log_scale = torch.log(z / focal)[:, None]
@@ -39,7 +40,7 @@ def seed_gaussians(
         quats=quats,
         log_scales=log_scale.expand(-1, axes).contiguous(),
         opacity_logits=torch.zeros(n, device=depth.device),
-        colors=color[mask].clone(),
+        colors=color.reshape(-1, 3)[pixels],
     )
 
 

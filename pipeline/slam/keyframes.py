@@ -36,8 +36,10 @@ def sample_valid_pixels(depth: torch.Tensor, count: int, generator: torch.Genera
     valid = torch.nonzero(depth.reshape(-1) > 0)[:, 0]
     if len(valid) == 0:
         return valid
-    pick = torch.randint(len(valid), (count,), generator=generator).to(valid.device)
-    return valid[pick]
+    pick = torch.randint(len(valid), (count,), generator=generator)
+    if valid.is_cuda:  # from pinned memory the copy is queued; from pageable memory it would wait for the GPU
+        pick = pick.pin_memory()
+    return valid[pick.to(valid.device, non_blocking=True)]
 
 
 def overlap_fractions(

@@ -25,7 +25,7 @@ def _learning_rates(config: MappingConfig) -> dict[str, float]:
 
 
 def _prune(optimizer: torch.optim.Adam, keep: torch.Tensor) -> Gaussians:
-    """Drop Gaussians from the parameters and from Adam's moments alike."""
+    """Drop Gaussians (all but the positions `keep` [M]) from the parameters and Adam's moments alike."""
     kept = {}
     for group in optimizer.param_groups:
         old = group["params"][0]
@@ -68,6 +68,7 @@ def map_window(
         if step in config.prune_at:
             with torch.no_grad():
                 keep = prune_mask(params, config.prune_opacity, config.prune_scale_factor * scene_radius)
+                keep = keep.nonzero()[:, 0]  # positions: the count is read back once, not per gathered tensor
             params = _prune(optimizer, keep)
         pick = rng.randrange(len(views))
         out = renderer(params, cameras[pick])

@@ -44,7 +44,7 @@ def track(
         eps=1e-15,
         fused=quat.is_cuda,
     )
-    best_loss = torch.tensor(float("inf"), device=quat.device)
+    best_loss = torch.full((), float("inf"), device=quat.device)  # a fill: no host-to-device copy
     best_quat, best_trans = quat.detach().clone(), trans.detach().clone()
     best_coverage = torch.zeros((), device=quat.device)
     valid_pixels = (frame.depth > 0).sum().clamp(min=1)
