@@ -34,7 +34,7 @@ def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
         ]
     )  # each row is 4 q_k q (up to scale), best conditioned where its k-th entry is largest
     best = torch.argmax(torch.stack([candidates[k, k] for k in range(4)]))
-    q = F.normalize(candidates[best], dim=0)
+    q = F.normalize(candidates.index_select(0, best[None])[0], dim=0)  # no read-back of `best`
     q = torch.where(q[0] < 0, -q, q)
     return q.to(rot.dtype)
 
@@ -42,18 +42,15 @@ def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
 def pose_matrix(quat: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """Quaternion [4] (normalised here) and translation [3] -> [4, 4]."""
     top = torch.cat([quat_to_rotmat(quat), trans[:, None]], dim=1)
-    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=top.dtype, device=top.device)
+    bottom = torch.eye(4, dtype=top.dtype, device=top.device)[3:]  # made on the device: no host copy
     return torch.cat([top, bottom], dim=0)
 
 
 def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     """Inverse of a rigid [..., 4, 4] transform."""
     rot_t = pose[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(pose)
-    out[..., :3, :3] = rot_t
-    out[..., :3, 3] = -(rot_t @ pose[..., :3, 3:4])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
+    top = torch.cat([rot_t, -(rot_t @ pose[..., :3, 3:4])], dim=-1)
+    return torch.cat([top, pose[..., 3:, :]], dim=-2)  # a rigid transform's last row is (0, 0, 0, 1)
 
 
 def constant_velocity(c2w_prev2: torch.Tensor, c2w_prev: torch.Tensor) -> torch.Tensor:
