@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
+#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
 set -uo pipefail
 out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
 shift
@@ -32,7 +32,8 @@ for part in "$@"; do
              done ;;
     syncs) python3 bench/sync_points.py --out "$out" --preset tiny --frames 30 2>&1 | grep -v Warning | tail -n 40 ;;
     costs) python3 bench/iteration_costs.py --out "$out" 2>&1 | grep -v "^gsplatam" | tail -n 45 ;;
-    tiny) bench synthetic --presets tiny --stem tiny ;;
+    tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
+    tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
     *) echo "unknown part $part"; exit 2 ;;

@@ -6,19 +6,10 @@ Quaternions are (w, x, y, z). Pixel (u, v) has its centre at (u + 0.5, v + 0.5),
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[..., 4] (w, x, y, z), any norm -> [..., 3, 3]."""
-    w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
@@ -39,11 +30,53 @@ def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
     return q.to(rot.dtype)
 
 
+# Row-major rotation entries as sums of the products q_i q_j of a unit quaternion (w, x, y, z):
+# each entry lists (sign, i, j) terms; e.g. R00 = w^2 + x^2 - y^2 - z^2, R01 = 2 (xy - wz).
+_ROTATION_TERMS = (
+    ((1, 0, 0), (1, 1, 1), (-1, 2, 2), (-1, 3, 3)),
+    ((1, 1, 2), (1, 2, 1), (-1, 0, 3), (-1, 3, 0)),
+    ((1, 1, 3), (1, 3, 1), (1, 0, 2), (1, 2, 0)),
+    ((1, 1, 2), (1, 2, 1), (1, 0, 3), (1, 3, 0)),
+    ((1, 0, 0), (-1, 1, 1), (1, 2, 2), (-1, 3, 3)),
+    ((1, 2, 3), (1, 3, 2), (-1, 0, 1), (-1, 1, 0)),
+    ((1, 1, 3), (1, 3, 1), (-1, 0, 2), (-1, 2, 0)),
+    ((1, 2, 3), (1, 3, 2), (1, 0, 1), (1, 1, 0)),
+    ((1, 0, 0), (-1, 1, 1), (-1, 2, 2), (1, 3, 3)),
+)
+
+
+@functools.cache
+def _rotation_from_products(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """[9, 16] matrix taking the flattened outer product q q^T to the flattened rotation."""
+    matrix = torch.zeros(9, 16, dtype=dtype)
+    for row, terms in enumerate(_ROTATION_TERMS):
+        for sign, i, j in terms:
+            matrix[row, 4 * i + j] = sign
+    return matrix.to(device)
+
+
+@functools.cache
+def _last_row(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype).to(device)
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[..., 4] (w, x, y, z), any norm -> [..., 3, 3].
+
+    One matrix product with the quaternion's outer product: a few kernels forward and backward,
+    where the entry-by-entry form takes ~40 each way. Tracking builds a pose from a quaternion
+    every iteration, and there the host's time to launch kernels sets the pace.
+    """
+    q = F.normalize(quats, dim=-1)
+    products = (q[..., :, None] * q[..., None, :]).flatten(-2)  # [..., 16]
+    rotation = products @ _rotation_from_products(q.device, q.dtype).T
+    return rotation.unflatten(-1, (3, 3))
+
+
 def pose_matrix(quat: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """Quaternion [4] (normalised here) and translation [3] -> [4, 4]."""
     top = torch.cat([quat_to_rotmat(quat), trans[:, None]], dim=1)
-    bottom = torch.eye(4, dtype=top.dtype, device=top.device)[3:]  # made on the device: no host copy
-    return torch.cat([top, bottom], dim=0)
+    return torch.cat([top, _last_row(top.device, top.dtype)], dim=0)
 
 
 def invert_pose(pose: torch.Tensor) -> torch.Tensor:

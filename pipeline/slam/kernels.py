@@ -1,8 +1,10 @@
 """The small tensor functions run in every tracking and mapping iteration, compiled or not.
 
-Each is a handful of element-wise kernels over the image (or a few dozen tiny ones for the pose
-matrix); on the GPU the host time to launch them rivals their run time, and `torch.compile`
-fuses them into a few kernels. The choice is made once, here (`make_kernels`), not in the loops.
+Each is a handful of element-wise kernels over the image; on the GPU the host time to launch
+them rivals their run time, and `torch.compile` fuses them into a few kernels. The choice is
+made once, here (`make_kernels`), not in the loops. The pose matrix is not compiled: in its
+matrix-product form (`geometry.quat_to_rotmat`) it is a few kernels, and a compiled call's own
+host overhead (~0.4 ms forward on the H200, `bench/results/iteration_costs*.json`) costs more.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ from dataclasses import dataclass
 
 import torch
 
-from pipeline.geometry import pose_matrix
 from pipeline.slam.losses import ssim
 
 
@@ -53,16 +54,14 @@ def mapping_loss(
 
 @dataclass(frozen=True)
 class SlamKernels:
-    pose_matrix: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     mapping_loss: Callable[..., torch.Tensor]
 
 
 def make_kernels(compiled: bool) -> SlamKernels:
     if not compiled:
-        return SlamKernels(pose_matrix, tracking_loss, mapping_loss)
+        return SlamKernels(tracking_loss, mapping_loss)
     return SlamKernels(
-        torch.compile(pose_matrix, dynamic=False),
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),
     )

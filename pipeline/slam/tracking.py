@@ -49,7 +49,7 @@ def track(
     best_coverage = torch.zeros((), device=quat.device)
     valid_pixels = (frame.depth > 0).sum().clamp(min=1)
     for _ in range(config.iters):
-        camera = Camera(kernels.pose_matrix(quat, trans), frame.intrinsics, frame.width, frame.height, near, far)
+        camera = Camera(pose_matrix(quat, trans), frame.intrinsics, frame.width, frame.height, near, far)
         out = renderer(gaussians, camera)
         loss, tracked_pixels = kernels.tracking_loss(
             out.color, out.depth, out.silhouette, frame.color, frame.depth,
