@@ -8,7 +8,7 @@ import torch
 from conftest import SMALL_SYNTH
 
 from pipeline.config import DatasetConfig, DensifyConfig, load_config, with_dataset_defaults
-from pipeline.geometry import constant_velocity, invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.geometry import constant_velocity, invert_pose, pose_matrix, quat_to_rotmat, rotmat_to_quat
 from pipeline.io.dataset import open_dataset
 from pipeline.io.ply import read_ply, write_ply
 from pipeline.io.trajectory import read_tum_trajectory, write_tum_trajectory
@@ -61,6 +61,12 @@ def test_densify_mask_on_a_hand_made_case() -> None:
     assert {tuple(p) for p in torch.nonzero(mask).tolist()} == {(1, 1), (3, 4)}
 
 
+def test_densify_mask_without_valid_depth_adds_nothing() -> None:
+    depth = torch.zeros(4, 6)
+    mask = densify_mask(torch.zeros(4, 6), torch.ones(4, 6), depth, DensifyConfig())
+    assert not mask.any()
+
+
 def test_keyframe_overlap_on_a_hand_made_case() -> None:
     k = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
     depth = torch.full((48, 64), 2.0)
@@ -89,6 +95,24 @@ def test_pose_quaternion_round_trip() -> None:
         pose = yaw(angle, (1.0, 2.0, 3.0))
         q = rotmat_to_quat(pose[:3, :3])
         torch.testing.assert_close(pose_matrix(q, pose[:3, 3]), pose, atol=1e-6, rtol=0)
+
+
+def test_quaternion_rotation_matches_rotating_by_the_quaternion_product() -> None:
+    """quat_to_rotmat(q) v equals the vector part of q (0, v) q* for random q (any norm) and v."""
+
+    def multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
+        return torch.cat([aw * bw - (av * bv).sum(-1, keepdim=True), aw * bv + bw * av + torch.cross(av, bv, -1)], -1)
+
+    gen = torch.Generator().manual_seed(0)
+    quats = torch.randn(64, 4, generator=gen, dtype=torch.float64) * 3
+    vectors = torch.randn(64, 3, generator=gen, dtype=torch.float64)
+    unit = quats / quats.norm(dim=-1, keepdim=True)
+    conjugate = unit * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64)
+    rotated = multiply(multiply(unit, torch.cat([torch.zeros(64, 1, dtype=torch.float64), vectors], -1)), conjugate)
+    rotations = quat_to_rotmat(quats)
+    torch.testing.assert_close((rotations @ vectors[..., None])[..., 0], rotated[..., 1:])
+    torch.testing.assert_close(torch.linalg.det(rotations), torch.ones(64, dtype=torch.float64))
 
 
 def test_ply_round_trip(tmp_path) -> None:
