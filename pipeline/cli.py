@@ -228,7 +228,7 @@ def _live_input(spec: str, config):
 
         nerfcapture = NeRFCaptureSource()
         decoder = NeRFCaptureDecoder(config.live.device_pose)
-        return LiveInput(nerfcapture.name, nerfcapture, nerfcapture.policy, decoder, nerfcapture.counters)
+        return LiveInput(nerfcapture.name, nerfcapture, decoder, nerfcapture.counters)
     from pipeline.io.record3d import Record3DDecoder, Record3DSource
 
     url = spec.removeprefix("record3d:")
@@ -237,7 +237,7 @@ def _live_input(spec: str, config):
     record3d = Record3DSource(url, config.live)
     size = (config.live.width, config.live.height) if config.live.width else None
     decoder = Record3DDecoder(record3d.counters, size, live_max_width(resolve_device(config.run.device)))
-    return LiveInput(record3d.name, record3d, record3d.policy, decoder, record3d.counters)
+    return LiveInput(record3d.name, record3d, decoder, record3d.counters)
 
 
 def _serve_live(spec: str, config, progress: bool) -> int:

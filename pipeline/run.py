@@ -93,7 +93,7 @@ def run_slam(
     sink = ResultSink(folder, total=len(dataset), initial=start_at, progress=progress)
     viewer = attach_viewer(config, slam, folder, f"gsplatam: {dataset.name}")
     source = DatasetSource(dataset, start_at)
-    graph = slam_graph(config, slam, source, source.policy, dataset.decode, sink, len(dataset) - 1, [], viewer)
+    graph = slam_graph(config, slam, source, "block", dataset.decode, sink, len(dataset) - 1, [], viewer)
     try:
         report = _execute(graph, config, folder, profile_trace, device)
     finally:

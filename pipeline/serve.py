@@ -28,7 +28,6 @@ from pipeline.run import slam_graph, timing_summary, versions
 from pipeline.runtime import Graph, execute
 from pipeline.slam.splatam import FrameResult, SplaTAM
 from pipeline.stages.periodic_save import PeriodicSave
-from pipeline.stages.queues import Policy
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.viewer_feed import attach_viewer
 
@@ -43,7 +42,6 @@ class LiveInput:
 
     name: str
     source: AsyncIterable[Any]
-    policy: Policy
     decode: Callable[[Any], Frame | None]
     counters: Any  # the source's dataclass of counters, reported by the status endpoint
 
@@ -103,7 +101,8 @@ def serve(config: Config, live: LiveInput, progress: bool = True) -> ServeResult
     saver = PeriodicSave(folder, config.live.save_every_s)
     sink = ResultSink(folder, total=None, progress=progress)
     viewer = attach_viewer(config, slam, folder, f"gsplatam: live {live.name}")
-    graph = slam_graph(config, slam, live.source, live.policy, live.decode, sink, None, [saver], viewer)
+    # Live input never waits for SLAM: the queue keeps the newest frames and counts the drops.
+    graph = slam_graph(config, slam, live.source, "keep_newest", live.decode, sink, None, [saver], viewer)
     if config.live.status_port:
         read = status_reader(live, graph, sink)
         graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))

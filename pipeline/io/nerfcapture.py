@@ -32,7 +32,6 @@ from cyclonedds.util import duration
 from pipeline.config import PoseUse
 from pipeline.errors import DataError
 from pipeline.frame import Frame
-from pipeline.stages.queues import Policy as QueuePolicy
 
 log = logging.getLogger("gsplatam")
 
@@ -147,7 +146,6 @@ class NeRFCaptureSource:
     Waits for a publisher indefinitely; bad messages are logged, counted and skipped."""
 
     name = "nerfcapture"
-    policy: QueuePolicy = "keep_newest"
 
     def __init__(self) -> None:
         self.counters = NeRFCaptureCounters()

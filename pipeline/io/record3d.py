@@ -28,7 +28,6 @@ from pipeline.errors import DataError
 from pipeline.frame import Frame
 from pipeline.io.images import resize_rgbd
 from pipeline.io.record3d_frames import intrinsics_from_metadata, unpack_frame
-from pipeline.stages.queues import Policy
 
 log = logging.getLogger("gsplatam")
 
@@ -192,11 +191,10 @@ class LiveCounters:
 class Record3DSource:
     """Frames from the phone, forever: connects, streams, and on any failure logs a specific
     message, closes the connection and retries with exponential back-off. Frame indices keep
-    counting across reconnections, so SLAM maps into the same map. Keeps the newest frames when
-    SLAM falls behind (the queue drops the oldest)."""
+    counting across reconnections, so SLAM maps into the same map. Never waits for SLAM: the
+    live graph's queue keeps the newest frames when SLAM falls behind (`serve`)."""
 
     name = "record3d"
-    policy: Policy = "keep_newest"
 
     def __init__(self, url: str, config: LiveConfig) -> None:
         self.url = url.rstrip("/")

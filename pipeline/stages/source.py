@@ -5,15 +5,13 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 
 from pipeline.io.dataset import Dataset, FrameRef
-from pipeline.stages.queues import Policy
 
 
 class DatasetSource:
-    """Frame references of an offline dataset, in order. Blocks when downstream is full:
-    offline data loses no frame."""
+    """Frame references of an offline dataset, in order (`run` puts them on a blocking queue:
+    offline data loses no frame)."""
 
     name = "source"
-    policy: Policy = "block"
 
     def __init__(self, dataset: Dataset, start_at: int = 0) -> None:
         self.dataset = dataset
