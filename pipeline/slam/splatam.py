@@ -13,7 +13,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
-from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, detached, seed_gaussians
+from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, copied, detached, seed_gaussians
 from pipeline.slam.kernels import make_kernels
 from pipeline.slam.keyframes import Keyframe, select_window
 from pipeline.slam.mapping import map_window
@@ -195,7 +195,7 @@ class SplaTAM:
         state = self.state
         assert state.gaussians is not None
         return {
-            "gaussians": {n: getattr(state.gaussians, n).detach().to("cpu", copy=True) for n in PARAMETER_NAMES},
+            "gaussians": dict(vars(copied(state.gaussians, "cpu"))),
             "keyframes": [
                 {"index": k.index, "color_u8": k.color_u8.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
                 for k in state.keyframes
