@@ -27,7 +27,6 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "sync-loader": ("run.loader=sync",),
     "no-compile": ("run.compile=off",),
     "packed": ("render.packed=true",),
-    "track-half": ("tracking.downscale=2",),  # not SplaTAM: tracking on a quarter of the pixels
     "3d-anisotropic": ("gaussians.isotropic=false",),
     "2d-isotropic": ("gaussians.kind=2d",),
     "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),

@@ -58,9 +58,6 @@ class TrackingConfig:
     silhouette_threshold: float = 0.99
     lost_translation_m: float = 0.3  # a jump beyond this from the initial guess marks tracking lost
     lost_coverage: float = 0.05  # fewer pixels than this fraction above the threshold marks it lost
-    # Track on the image shrunk by this factor (1: full size, as SplaTAM). 2 renders a quarter of
-    # the pixels per iteration: faster, less accurate (bench variant `track-half`).
-    downscale: int = 1
 
 
 @dataclass(frozen=True)
@@ -322,7 +319,6 @@ def with_dataset_defaults(config: Config, dataset_format: str) -> Config:
 def validate(config: Config) -> None:
     checks = [
         (config.tracking.iters >= 0, "tracking.iters must be >= 0"),
-        (config.tracking.downscale >= 1, "tracking.downscale must be >= 1"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),
         (config.keyframes.every >= 1, "keyframes.every must be >= 1"),

@@ -7,8 +7,7 @@ import pytest
 import torch
 from conftest import SMALL_SYNTH
 
-from pipeline.config import DatasetConfig, DensifyConfig, SyntheticConfig, load_config, with_dataset_defaults
-from pipeline.frame import DeviceFrame
+from pipeline.config import DatasetConfig, DensifyConfig, load_config, with_dataset_defaults
 from pipeline.geometry import constant_velocity, invert_pose, pose_matrix, quat_to_rotmat, rotmat_to_quat
 from pipeline.io.dataset import open_dataset
 from pipeline.io.ply import read_ply, write_ply
@@ -19,9 +18,7 @@ from pipeline.slam.densify import densify_mask
 from pipeline.slam.keyframes import Keyframe, overlap_fractions, select_window
 from pipeline.slam.losses import psnr
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking import downscaled
 from pipeline.stages.upload import host_frame_tensors
-from pipeline.synthetic import default_intrinsics, make_scene, render_view, trajectory
 
 CPU = torch.device("cpu")
 
@@ -263,6 +260,7 @@ def test_lost_tracking_is_reported_not_silent(replica_seq) -> None:
 
 
 def test_synthetic_scenes_are_deterministic_per_seed() -> None:
+    from pipeline.config import SyntheticConfig
     from pipeline.synthetic import sequence
 
     def first_frame(seed: int):
@@ -272,22 +270,3 @@ def test_synthetic_scenes_are_deterministic_per_seed() -> None:
     a, b, c = first_frame(1), first_frame(1), first_frame(2)
     assert all(np.array_equal(x, y) for x, y in zip(a, b))
     assert not np.array_equal(a[0], c[0])
-
-
-def test_a_downscaled_frame_matches_the_scene_seen_at_that_size() -> None:
-    """Shrinking a 64x48 view by 2 gives what a 32x24 camera with the scaled intrinsics sees."""
-    scene = make_scene(3)
-    c2w = trajectory(SyntheticConfig(), 1)[0]
-    big_color, big_depth = render_view(scene, c2w, default_intrinsics(64, 48), 64, 48)
-    small_color, small_depth = render_view(scene, c2w, default_intrinsics(32, 24), 32, 24)
-    frame = DeviceFrame(
-        0, 0.0, torch.from_numpy(big_color).float() / 255, torch.from_numpy(big_depth),
-        torch.tensor(default_intrinsics(64, 48), dtype=torch.float32), None,
-    )  # fmt: skip
-    frame.depth[5, 7] = 0.0  # an invalid pixel does not drag its block's depth towards 0
-    small = downscaled(frame, 2)
-    assert small.color.shape == (24, 32, 3) and small.depth.shape == (24, 32)
-    torch.testing.assert_close(small.intrinsics, torch.tensor(default_intrinsics(32, 24), dtype=torch.float32))
-    depth_error = (small.depth - torch.from_numpy(small_depth)).abs()
-    assert depth_error.median() < 0.01 and small.depth[2, 3] > 0.5
-    assert (small.color - torch.from_numpy(small_color).float() / 255).abs().median() < 0.05

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from pipeline.config import LossConfig, TrackingConfig
 from pipeline.frame import DeviceFrame
@@ -19,24 +18,6 @@ class TrackResult:
     c2w: torch.Tensor  # [4, 4] the pose with the lowest loss seen
     best_loss: torch.Tensor  # [] that loss (device tensor; read it at the frame boundary)
     coverage: torch.Tensor  # [] fraction of valid-depth pixels the map covered at that pose
-
-
-def downscaled(frame: DeviceFrame, factor: int) -> DeviceFrame:
-    """The frame shrunk by `factor` in each direction (rows and columns beyond a multiple of it
-    dropped): colour averaged over each factor x factor block, depth averaged over the block's
-    valid pixels (0 where none is), intrinsics scaled so that each small pixel's centre is its
-    block's centre."""
-    height, width = frame.height // factor * factor, frame.width // factor * factor
-    color = frame.color[:height, :width].permute(2, 0, 1)[None]  # [1, 3, H, W]
-    depth = frame.depth[:height, :width][None, None]
-    valid = (depth > 0).float()
-    depth_sum, valid_count = F.avg_pool2d(depth, factor), F.avg_pool2d(valid, factor)
-    return replace(
-        frame,
-        color=F.avg_pool2d(color, factor)[0].permute(1, 2, 0).contiguous(),
-        depth=torch.where(valid_count > 0, depth_sum / valid_count.clamp(min=1e-12), 0.0)[0, 0],
-        intrinsics=torch.cat([frame.intrinsics[:2] / factor, frame.intrinsics[2:]]),  # fx, fy, cx, cy / factor
-    )
 
 
 def track(
@@ -53,11 +34,8 @@ def track(
     """Fresh Adam on the world-to-camera quaternion and translation for `config.iters` steps.
 
     The Gaussians are frozen (passed without gradients). The best pose is chosen on the
-    device: the loss at step i belongs to the parameters before step i's update. With
-    `config.downscale` > 1 the frame is rendered and compared at that reduced size.
+    device: the loss at step i belongs to the parameters before step i's update.
     """
-    if config.downscale > 1:
-        frame = downscaled(frame, config.downscale)
     w2c_init = invert_pose(c2w_init)
     quat = rotmat_to_quat(w2c_init[:3, :3]).clone().requires_grad_(True)
     trans = w2c_init[:3, 3].clone().requires_grad_(True)
