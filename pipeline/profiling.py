@@ -36,15 +36,18 @@ def kernel_busy(prof: profile, wall_s: float) -> dict[str, float]:
 
 
 def stage_times(prof: profile) -> dict[str, dict[str, float]]:
-    """Host and device time inside each named range (record_function) of the pipeline."""
-    rows = {}
+    """Host and device time inside each named range (record_function) of the pipeline.
+
+    With CUDA a range appears twice in the averages, as its host span and as its span on the
+    device (the other's time 0 in each); a stage's row takes the larger of each.
+    """
+    rows: dict[str, dict[str, float]] = {}
     for avg in prof.key_averages():
         if avg.key in STAGES:
-            rows[avg.key] = {
-                "count": avg.count,
-                "cpu_ms": avg.cpu_time_total / 1000.0,
-                "device_ms": avg.device_time_total / 1000.0,
-            }
+            row = rows.setdefault(avg.key, {"count": 0, "cpu_ms": 0.0, "device_ms": 0.0})
+            row["count"] = max(row["count"], avg.count)
+            row["cpu_ms"] = max(row["cpu_ms"], avg.cpu_time_total / 1000.0)
+            row["device_ms"] = max(row["device_ms"], avg.device_time_total / 1000.0)
     return rows
 
 

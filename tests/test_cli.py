@@ -187,3 +187,29 @@ def test_bench_generates_the_tum_like_sequence(tmp_path: Path) -> None:
     assert "_tum_n0.0015_h0.02" in row["sequence"] and row["frames"] == 3
     generated = next((tmp_path / "runs" / "synthetic").iterdir())
     assert (generated / "rgb.txt").exists() and (generated / "groundtruth.txt").exists()
+
+
+def test_profiled_run_writes_a_trace_and_per_stage_host_times(replica_seq: Path, tmp_path: Path) -> None:
+    argv = ["run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path / "out"), "--name", "p"]
+    assert main(argv + ["--set", "dataset.end=3", "--profile", "--quiet"]) == 0
+    folder = run_folder(tmp_path, "p")
+    assert json.loads((folder / "trace.json").read_text())["traceEvents"]
+    stages = json.loads((folder / "metrics.json").read_text())["runtime"]["profile"]["stages"]
+    assert {"decode", "tracking", "densify", "mapping"} <= set(stages)
+    assert stages["mapping"]["count"] == 3 and stages["mapping"]["cpu_ms"] > 0
+    assert "per stage:" in (folder / "profile.txt").read_text()
+
+
+def test_stage_times_merge_the_host_and_device_rows_of_a_range() -> None:
+    """With CUDA the profiler reports a range once on the host and once on the device."""
+    from types import SimpleNamespace
+
+    from pipeline.profiling import stage_times
+
+    rows = [
+        SimpleNamespace(key="mapping", count=60, cpu_time_total=4_187_000.0, device_time_total=527_000.0),
+        SimpleNamespace(key="mapping", count=60, cpu_time_total=0.0, device_time_total=3_998_000.0),
+        SimpleNamespace(key="aten::add", count=9, cpu_time_total=1.0, device_time_total=1.0),
+    ]
+    times = stage_times(SimpleNamespace(key_averages=lambda: rows))
+    assert times == {"mapping": {"count": 60, "cpu_ms": 4187.0, "device_ms": 3998.0}}
