@@ -2,10 +2,15 @@
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
 #   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
+# Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
+# one file, since a device call returns at most 8 files.
 set -uo pipefail
-out=${1:?usage: gpu_suite.sh OUT_DIR PART...}
+dest=${1:?usage: gpu_suite.sh OUT_DIR PART...}
 shift
-mkdir -p "$out"
+out=$(mktemp -d)
+mkdir -p "$dest"
+trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
+trap 'exit 143' TERM INT
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
 tum=.data/tum_fr1_xyz_37
