@@ -18,7 +18,7 @@ import math
 import statistics
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,8 @@ from pipeline.run import run_slam, versions
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves
 from pipeline.slam.kernels import EAGER, make_kernels
 from pipeline.synthetic import default_intrinsics
+
+WARMUP = 5  # iterations run before timing: compilation, allocator and cache warm-up
 
 
 class DeviceSpan:
@@ -75,6 +77,26 @@ class HostClock:
 
     def medians(self) -> dict[str, float]:
         return {name: statistics.median(values) for name, values in self.samples.items()}
+
+
+def timed_iterations(
+    forward: Callable[[HostClock], torch.Tensor], optimizer: torch.optim.Optimizer, repeats: int, cuda: bool
+) -> dict[str, Any]:
+    """`WARMUP` untimed, then `repeats` timed optimiser iterations: `forward(clock)` -> loss (it times
+    its own calls), then backward and the Adam step. -> median host ms per call, median GPU span."""
+    clock, span = HostClock(), DeviceSpan(cuda)
+    for i in range(WARMUP + repeats):
+        if i == WARMUP:
+            clock, span = HostClock(), DeviceSpan(cuda)
+        span.start()
+        value = forward(clock)
+        with clock("zero_grad + backward"):
+            optimizer.zero_grad(set_to_none=True)
+            value.backward()
+        with clock("Adam step (fused)"):
+            optimizer.step()
+        span.stop()
+    return {"host_ms": clock.medians(), "gpu_span_ms": statistics.median(span.samples)}
 
 
 def built_map(frames: int) -> tuple[Gaussians, dict, Any]:
@@ -138,61 +160,45 @@ def main() -> None:
     for label, tracking_loss in (("tracking", kernels.tracking_loss), ("tracking, eager loss", EAGER.tracking_loss)):
         quat = rotmat_to_quat(w2c[:3, :3]).clone().requires_grad_(True)
         trans = w2c[:3, 3].clone().requires_grad_(True)
-        optimizer = torch.optim.Adam([quat, trans], lr=1e-3, eps=1e-15, fused=cuda)
-        clock, span = HostClock(), DeviceSpan(cuda)
-        for i in range(args.repeats + 5):
-            span.start()
+
+        def tracking_forward(clock: HostClock, quat=quat, trans=trans, tracking_loss=tracking_loss) -> torch.Tensor:
             with clock("pose matrix"):
                 camera = Camera(pose_matrix(quat, trans), intrinsics, width, height, near, far)
             with clock("render (gsplat.rasterization)"):
                 out = renderer(gaussians, camera)
             with clock("tracking loss"):
-                value, _ = tracking_loss(
+                return tracking_loss(
                     out.color, out.depth, out.silhouette, color, depth, threshold, loss.depth_weight, loss.color_weight
-                )
-            with clock("zero_grad + backward"):
-                optimizer.zero_grad(set_to_none=True)
-                value.backward()
-            with clock("Adam step (fused)"):
-                optimizer.step()
-            span.stop()
-            if i == 4:
-                clock, span = HostClock(), DeviceSpan(cuda)
-        results[label] = {"host_ms": clock.medians(), "gpu_span_ms": statistics.median(span.samples)}
+                )[0]
+
+        optimizer = torch.optim.Adam([quat, trans], lr=1e-3, eps=1e-15, fused=cuda)
+        results[label] = timed_iterations(tracking_forward, optimizer, args.repeats, cuda)
 
     # Mapping: gradients to every Gaussian parameter.
     params = as_leaves(gaussians)
-    optimizer = torch.optim.Adam([getattr(params, n) for n in PARAMETER_NAMES], lr=1e-4, eps=1e-15, fused=cuda)
     camera = Camera(w2c, intrinsics, width, height, near, far)
-    clock, span = HostClock(), DeviceSpan(cuda)
-    for i in range(args.repeats + 5):
-        span.start()
+
+    def mapping_forward(clock: HostClock) -> torch.Tensor:
         with clock("render (gsplat.rasterization)"):
             out = renderer(params, camera)
         with clock("mapping loss (compiled)"):
-            value = kernels.mapping_loss(
+            return kernels.mapping_loss(
                 out.color, out.depth, color, depth, config.mapping.ssim_weight, loss.depth_weight, loss.color_weight
             )
-        with clock("zero_grad + backward"):
-            optimizer.zero_grad(set_to_none=True)
-            value.backward()
-        with clock("Adam step (fused)"):
-            optimizer.step()
-        span.stop()
-        if i == 4:
-            clock, span = HostClock(), DeviceSpan(cuda)
-    results["mapping"] = {"host_ms": clock.medians(), "gpu_span_ms": statistics.median(span.samples)}
+
+    optimizer = torch.optim.Adam([getattr(params, n) for n in PARAMETER_NAMES], lr=1e-4, eps=1e-15, fused=cuda)
+    results["mapping"] = timed_iterations(mapping_forward, optimizer, args.repeats, cuda)
 
     # gsplat's rasterisation in its steps (mapping case: gradients to the Gaussians).
     clock = HostClock()
-    for i in range(args.repeats + 5 if cuda else 0):
+    for i in range(WARMUP + args.repeats if cuda else 0):
+        if i == WARMUP:
+            clock = HostClock()
         torch.cuda.synchronize()
         with clock("all steps"):
             total = gsplat_steps(params, camera, clock)
         with clock("backward"):
             total.backward()
-        if i == 4:
-            clock = HostClock()
     results["gsplat_steps"] = {"host_ms": clock.medians()}
 
     report = {
