@@ -25,13 +25,15 @@ from typing import Any
 
 import torch
 
+from pipeline.app.report import versions
+from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.io.datasets.synthetic import default_intrinsics
 from pipeline.render import Camera, Gaussians, make_renderer
-from pipeline.run import run_slam, versions
-from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves
+from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, copied
 from pipeline.slam.kernels import EAGER, make_kernels
-from pipeline.synthetic import default_intrinsics
+from pipeline.slam.keyframes import Keyframe
 
 WARMUP = 5  # iterations run before timing: compilation, allocator and cache warm-up
 
@@ -99,14 +101,13 @@ def timed_iterations(
     return {"host_ms": clock.medians(), "gpu_span_ms": statistics.median(span.samples)}
 
 
-def built_map(frames: int) -> tuple[Gaussians, dict, Any]:
+def built_map(frames: int) -> tuple[Gaussians, Keyframe, Any]:
     config = load_config("tiny", overrides=[f"synthetic.frames={frames}"])
     config = with_value(config, "run.output", "/tmp/iteration_costs")
     result = run_slam(config, progress=False)
-    saved = torch.load(result.folder.checkpoint, weights_only=False)["slam"]
+    saved, _ = result.folder.read_checkpoint()
     device = "cuda" if torch.cuda.is_available() else "cpu"  # the CPU only to try the script out
-    gaussians = Gaussians(**{n: saved["gaussians"][n].to(device) for n in PARAMETER_NAMES})
-    return gaussians, saved["keyframes"][-1], config
+    return copied(saved.gaussians, device), saved.keyframes[-1], config
 
 
 def gsplat_steps(gaussians: Gaussians, camera: Camera, clock: HostClock) -> torch.Tensor:
@@ -147,10 +148,10 @@ def main() -> None:
     cuda = device.type == "cuda"
     renderer = make_renderer(config.render, config.gaussians, device)
     kernels = make_kernels(compiled=cuda)
-    color = keyframe["color_u8"].to(device).float() / 255.0
-    depth = keyframe["depth"].to(device)
+    color = keyframe.color_u8.to(device).float() / 255.0
+    depth = keyframe.depth.to(device)
     intrinsics = torch.tensor(default_intrinsics(*depth.shape[::-1]), dtype=torch.float32, device=device)
-    w2c = invert_pose(keyframe["c2w"].to(device))
+    w2c = invert_pose(keyframe.c2w.to(device))
     height, width = depth.shape
     near, far, loss = config.render.near, config.render.far, config.loss
     threshold = config.tracking.silhouette_threshold

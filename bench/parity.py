@@ -17,10 +17,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.app.report import versions  # noqa: E402
 from pipeline.geometry import invert_pose, quat_to_rotmat  # noqa: E402
 from pipeline.render.reference import SMOOTH, render_reference  # noqa: E402
 from pipeline.render.types import Camera, Gaussians  # noqa: E402
-from pipeline.run import versions  # noqa: E402
 
 # Tolerances on relative L2 error ||gsplat - reference|| / ||reference||, chosen before the run:
 # float32 arithmetic in a different order (and __expf on the GPU) lands far under 1e-4 for the

@@ -19,14 +19,15 @@ import aiortc
 import av
 import numpy as np
 
+from pipeline.app.report import versions
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.frame import Frame
-from pipeline.io.dataset import Dataset, open_dataset
-from pipeline.io.fake_record3d import FakePhone
-from pipeline.io.record3d import LiveCounters, Record3DDecoder, Record3DPacket, Record3DSession, StreamEnded
-from pipeline.io.record3d_frames import DEPTH_VALID_M
-from pipeline.io.synth_writer import write_synthetic
-from pipeline.run import versions
+from pipeline.io.datasets.base import Dataset
+from pipeline.io.datasets.loader import open_dataset
+from pipeline.io.datasets.synthetic_writer import write_synthetic
+from pipeline.io.live.fake_record3d import FakePhone
+from pipeline.io.live.record3d import Record3DPacket, Record3DSession, Record3DSource, StreamEnded
+from pipeline.io.live.record3d_format import DEPTH_VALID_M
 
 
 def _nearest_sent(dataset: Dataset, color: np.ndarray, guess: int) -> Frame:
@@ -39,13 +40,14 @@ def _nearest_sent(dataset: Dataset, color: np.ndarray, guess: int) -> Frame:
 async def measure(dataset: Dataset, fps: float) -> dict[str, float]:
     phone = FakePhone(dataset, fps=fps)
     port = await phone.start("127.0.0.1", 0)
-    session = Record3DSession(f"http://127.0.0.1:{port}", LiveConfig())
-    decoder = Record3DDecoder(LiveCounters())
+    url = f"http://127.0.0.1:{port}"
+    session = Record3DSession(url, LiveConfig())
+    decoder = Record3DSource(url, LiveConfig())
     errors, kept = [], []
     try:
         await session.open()
         async for image in session.frames():
-            frame = decoder(Record3DPacket(len(kept), 0.0, image, session.metadata))
+            frame = decoder.decode(Record3DPacket(len(kept), 0.0, image, session.metadata))
             if frame is None:
                 continue
             sent = _nearest_sent(dataset, frame.color, len(kept))

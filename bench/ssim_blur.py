@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from pipeline.run import versions
+from pipeline.app.report import versions
 from pipeline.slam import losses
 from pipeline.slam.kernels import mapping_loss
 

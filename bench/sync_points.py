@@ -21,8 +21,9 @@ from pathlib import Path
 
 import torch
 
+from pipeline.app.report import versions
+from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
-from pipeline.run import run_slam, versions
 
 OURS = ("/pipeline/", "/gsplat/")
 

@@ -18,8 +18,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from pipeline.app.report import versions
+from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
-from pipeline.run import run_slam, versions
 
 
 class ViserClient(threading.Thread):

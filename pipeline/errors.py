@@ -1,4 +1,5 @@
-"""Errors a user can cause and fix: the CLI prints them as one line and exits with code 2."""
+"""Errors a user can cause and fix (the CLI prints them as one line and exits with code 2), and
+the runtime's report of a failing stage."""
 
 
 class UserError(Exception):
@@ -7,3 +8,12 @@ class UserError(Exception):
 
 class DataError(UserError):
     """Input data that cannot be read: a missing, unreadable or malformed file."""
+
+
+class StageFailure(Exception):
+    """A stage raised: names the stage and the frame it was working on."""
+
+    def __init__(self, stage: str, frame: int | None, cause: BaseException) -> None:
+        where = f" on frame {frame}" if frame is not None else ""
+        super().__init__(f"stage '{stage}' failed{where}: {cause}")
+        self.stage, self.frame, self.cause = stage, frame, cause

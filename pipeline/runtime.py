@@ -18,18 +18,24 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
+from torch.profiler import record_function
+
+from pipeline.errors import StageFailure
 from pipeline.frame import Frame
+from pipeline.source import Source
 from pipeline.stages.queues import END, Policy, StageQueue
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStep
-from pipeline.stages.stage import StageFailure, StageStats, transform_stage
+from pipeline.stages.stage import StageStats, frame_index, transform_stage
 from pipeline.stages.upload import UploadedFrame
 from pipeline.stages.worker import dedicated_thread_stage
 
 try:
     import uvloop
+
+    HAVE_UVLOOP = True
 except ImportError:  # pragma: no cover - uvloop is a dependency, but optional on Windows
-    uvloop = None
+    HAVE_UVLOOP = False
 
 
 @dataclass
@@ -65,22 +71,26 @@ class RuntimeReport:
         }
 
 
+Service = Callable[[asyncio.Event], Coroutine[Any, Any, None]]  # runs beside the graph; gets `stop`
+
+
 @dataclass
 class Graph:
-    """What the runtime needs: a source, the per-item functions and the sink."""
+    """What the runtime needs: a source, the upload, the SLAM step and the sink. A live source's
+    queue keeps the newest items (drops counted); an offline one's blocks (nothing lost)."""
 
-    source: AsyncIterable[Any]
-    source_policy: Policy
-    decode: Callable[[Any], Frame]
+    source: Source
     upload: Callable[[Frame], UploadedFrame]
     slam: SlamStep
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
-    services: list[Callable[[asyncio.Event], Coroutine[Any, Any, None]]] = field(
-        default_factory=list
-    )  # beside it; get `stop`
+    services: list[Service] = field(default_factory=list)
     queues: dict[str, StageQueue[Any]] = field(default_factory=dict)  # filled by run_graph, for live status
+
+    @property
+    def source_policy(self) -> Policy:
+        return "keep_newest" if self.source.live else "block"
 
 
 def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
@@ -136,7 +146,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
         async with asyncio.TaskGroup() as group:
             upstream = [
                 group.create_task(_feed(graph.source, refs, stop)),
-                group.create_task(transform_stage("decode", graph.decode, refs, frames, pools[0], stats[0])),
+                group.create_task(transform_stage("decode", graph.source.decode, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
             ]
             slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
@@ -169,14 +179,18 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
         if stop.is_set():
             break
         value: Any = item
-        for name, fn in (("decode", graph.decode), ("upload", graph.upload), ("slam", graph.slam)):
+        for name, fn in (("decode", graph.source.decode), ("upload", graph.upload), ("slam", graph.slam)):
             t0 = time.perf_counter()
             try:
-                value = fn(value)
+                with record_function(name):
+                    value = fn(value)
             except Exception as exc:
-                raise StageFailure(name, getattr(item, "index", None), exc) from exc
+                raise StageFailure(name, frame_index(item), exc) from exc
             stats[name].record(time.perf_counter() - t0)
-        graph.sink.consume(value)
+            if value is None:  # an unusable live frame
+                break
+        else:
+            graph.sink.consume(value)
     return _finish_report(graph, "sync", time.perf_counter() - start, stop.is_set(), list(stats.values()))
 
 
@@ -202,6 +216,6 @@ def execute(graph: Graph, loader: str) -> RuntimeReport:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
 
-    if uvloop is not None:
+    if HAVE_UVLOOP:
         return uvloop.run(main())
     return asyncio.run(main())

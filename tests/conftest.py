@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import random
+import socket
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -7,11 +10,12 @@ import pytest
 import torch
 
 from pipeline.config import SyntheticConfig
-from pipeline.io.synth_writer import write_synthetic
+from pipeline.io.datasets.synthetic_writer import write_synthetic
 
 torch.set_num_threads(2)
 
-SHARED_TUM = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tum_fr1_xyz_37"
+ROOT = Path(__file__).resolve().parents[1]  # the checkout
+SHARED_TUM = ROOT.parent / "shared" / "data" / "tum_fr1_xyz_37"
 SMALL_SYNTH = SyntheticConfig(frames=6, width=64, height=48, seed=3)
 
 
@@ -34,3 +38,31 @@ def tum_sample() -> Path:
     if not (SHARED_TUM / "rgb.txt").exists():
         pytest.skip(f"the shared TUM sample is absent ({SHARED_TUM})")
     return SHARED_TUM
+
+
+DOMAIN_LOCK_PORT = 47000  # + domain id: a TCP port on loopback held while a test uses that DDS domain
+
+
+@pytest.fixture
+def dds_domain() -> Iterator[int]:
+    """A DDS domain id that no other test, of this suite or another on the machine, uses now.
+
+    DDS traffic of one domain reaches every process on the machine in that domain, so each test
+    takes its own: the domain is held by binding TCP port DOMAIN_LOCK_PORT + id on loopback
+    (TCP, so the DDS sockets, which are UDP, never meet it) for the test's duration.
+    """
+    start = random.randrange(232)
+    for k in range(232):
+        domain = 1 + (start + k) % 232
+        lock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            lock.bind(("127.0.0.1", DOMAIN_LOCK_PORT + domain))
+        except OSError:
+            lock.close()
+            continue
+        try:
+            yield domain
+        finally:
+            lock.close()
+        return
+    raise RuntimeError("every DDS domain id is held by another test")

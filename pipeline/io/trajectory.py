@@ -9,6 +9,7 @@ import torch
 
 from pipeline.errors import DataError
 from pipeline.geometry import quat_to_rotmat
+from pipeline.io.outputs.atomic import atomic_write_text
 
 
 def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -85,4 +86,4 @@ def write_tum_trajectory(path: Path, timestamps: np.ndarray, c2w: np.ndarray) ->
         q = matrix_to_quat_xyzw(pose[:3, :3])
         x, y, z = pose[:3, 3]
         lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
-    path.write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")

@@ -11,7 +11,7 @@ from functools import partial
 
 import torch
 
-from pipeline.config import GaussianConfig, RenderConfig
+from pipeline.config import GaussianConfig, RenderBackend, RenderConfig
 from pipeline.errors import UserError
 from pipeline.render.reference import render_reference
 from pipeline.render.types import Camera, Gaussians, RenderOutput
@@ -23,7 +23,7 @@ FLAT_LOG_SCALE = -9.0  # log-scale of the normal axis when 2D Gaussians run on t
 __all__ = ["Camera", "Gaussians", "RenderOutput", "Renderer", "make_renderer", "resolve_backend"]
 
 
-def resolve_backend(config: RenderConfig, device: torch.device) -> str:
+def resolve_backend(config: RenderConfig, device: torch.device) -> RenderBackend:
     if config.backend == "auto":
         return "gsplat" if device.type == "cuda" else "reference"
     if config.backend == "gsplat" and device.type != "cuda":

@@ -25,7 +25,10 @@ def _blur(x: torch.Tensor, dim: int) -> torch.Tensor:
     size = x.shape[dim]
     widths = [0, 0] * (x.dim() - 1 - dim) + [pad, pad]
     padded = F.pad(x, widths)
-    return sum(tap * padded.narrow(dim, k, size) for k, tap in enumerate(SSIM_TAPS))
+    blurred = SSIM_TAPS[0] * padded.narrow(dim, 0, size)
+    for k, tap in enumerate(SSIM_TAPS[1:], start=1):
+        blurred = blurred + tap * padded.narrow(dim, k, size)
+    return blurred
 
 
 def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+from dataclasses import dataclass
 
 import torch
 
@@ -38,23 +39,32 @@ def _prune(optimizer: torch.optim.Adam, keep: torch.Tensor) -> Gaussians:
     return Gaussians(**kept)
 
 
+@dataclass(frozen=True)
+class MapSettings:
+    """What mapping needs besides the map, the views and the run's random state."""
+
+    renderer: Renderer
+    config: MappingConfig
+    loss: LossConfig
+    near: float  # metres
+    far: float
+    kernels: SlamKernels = EAGER
+
+
 def map_window(
     gaussians: Gaussians,
     views: list[Keyframe],
     intrinsics: torch.Tensor,
-    renderer: Renderer,
-    config: MappingConfig,
-    weights: LossConfig,
     scene_radius: float,
-    near: float,
-    far: float,
     rng: random.Random,
-    kernels: SlamKernels = EAGER,
+    settings: MapSettings,
 ) -> Gaussians:
-    """`config.iters` Adam steps, each on one view drawn at random; pruning at `config.prune_at`.
+    """`config.iters` Adam steps, each on one view drawn at random; pruning at `config.prune_at`
+    (Gaussians larger than `prune_scale_factor` x `scene_radius` metres go too).
 
     -> the optimised Gaussians (detached).
     """
+    config, weights, kernels = settings.config, settings.loss, settings.kernels
     params = as_leaves(gaussians)
     rates = _learning_rates(config)
     optimizer = torch.optim.Adam(
@@ -63,7 +73,7 @@ def map_window(
         fused=params.means.is_cuda,
     )
     height, width = views[0].depth.shape
-    cameras = [Camera(invert_pose(v.c2w), intrinsics, width, height, near, far) for v in views]
+    cameras = [Camera(invert_pose(v.c2w), intrinsics, width, height, settings.near, settings.far) for v in views]
     for step in range(config.iters):
         if step in config.prune_at:
             with torch.no_grad():
@@ -71,7 +81,7 @@ def map_window(
                 keep = keep.nonzero()[:, 0]  # positions: the count is read back once, not per gathered tensor
             params = _prune(optimizer, keep)
         pick = rng.randrange(len(views))
-        out = renderer(params, cameras[pick])
+        out = settings.renderer(params, cameras[pick])
         view = views[pick]
         loss = kernels.mapping_loss(
             out.color, out.depth, view.color, view.depth, config.ssim_weight, weights.depth_weight, weights.color_weight

@@ -4,21 +4,22 @@ from __future__ import annotations
 
 import math
 import random
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
-from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.render import Camera, Renderer
 from pipeline.slam.densify import densify_mask
-from pipeline.slam.gaussian_map import PARAMETER_NAMES, concatenate, copied, detached, seed_gaussians
+from pipeline.slam.gaussian_map import concatenate, copied, detached, seed_gaussians
 from pipeline.slam.kernels import make_kernels
 from pipeline.slam.keyframes import Keyframe, select_window
-from pipeline.slam.mapping import map_window
+from pipeline.slam.mapping import MapSettings, map_window
+from pipeline.slam.state import Checkpoint, SlamState
 from pipeline.slam.timing import StageClock
-from pipeline.slam.tracking import track
+from pipeline.slam.tracking import TrackSettings, track
 
 LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
 LOSS_HISTORY_MIN = 5
@@ -38,18 +39,6 @@ class FrameResult:
     c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
 
 
-@dataclass
-class SlamState:
-    """Everything needed to continue a run: what a checkpoint holds."""
-
-    gaussians: Gaussians | None = None
-    keyframes: list[Keyframe] = field(default_factory=list)
-    poses: list[torch.Tensor] = field(default_factory=list)  # estimated camera-to-world per frame
-    scene_radius: float = 0.0
-    loss_history: list[float] = field(default_factory=list)
-    last_prior: torch.Tensor | None = None  # [4, 4] the last frame's device pose, if it had one
-
-
 class SplaTAM:
     def __init__(self, config: Config, renderer: Renderer, device: torch.device) -> None:
         self.config = config
@@ -60,7 +49,10 @@ class SplaTAM:
         self.generator = torch.Generator().manual_seed(config.run.seed)
         self.clock = StageClock(device)
         compiled = config.run.compile == "on" or (config.run.compile == "auto" and device.type == "cuda")
-        self.kernels = make_kernels(compiled)
+        kernels = make_kernels(compiled)
+        near, far = config.render.near, config.render.far
+        self.track_settings = TrackSettings(renderer, config.tracking, config.loss, near, far, kernels)
+        self.map_settings = MapSettings(renderer, config.mapping, config.loss, near, far, kernels)
 
     @property
     def frames_done(self) -> int:
@@ -79,25 +71,11 @@ class SplaTAM:
             else:
                 with self.clock.stage("tracking"):
                     c2w_init = self._initial_pose(frame)
-                    tracked = track(
-                        detached(state.gaussians), frame, c2w_init, self.renderer, cfg.tracking, cfg.loss,
-                        cfg.render.near, cfg.render.far, self.kernels,
-                    )  # fmt: skip
+                    tracked = track(detached(state.gaussians), frame, c2w_init, self.track_settings)
                     c2w, loss, coverage = tracked.c2w, tracked.best_loss, tracked.coverage
                 with self.clock.stage("densify"):
                     added = self._densify(frame, c2w)
-                    window = [
-                        state.keyframes[i]
-                        for i in select_window(
-                            state.keyframes,
-                            frame.depth,
-                            frame.intrinsics,
-                            c2w,
-                            cfg.mapping.window,
-                            cfg.keyframes.overlap_samples,
-                            self.generator,
-                        )  # fmt: skip
-                    ]
+                    window = self._window(frame, c2w)
             current = Keyframe.of(frame.index, frame.color, frame.depth, c2w.detach())
             with self.clock.stage("mapping"):
                 self._map(window + [current], frame.intrinsics)
@@ -136,15 +114,28 @@ class SplaTAM:
         state.gaussians = concatenate(state.gaussians, seeds)
         return len(seeds)
 
+    def _window(self, frame: DeviceFrame, c2w: torch.Tensor) -> list[Keyframe]:
+        """The keyframes mapped with the current frame: overlapping ones and the newest."""
+        cfg, keyframes = self.config, self.state.keyframes
+        picks = select_window(
+            keyframes,
+            frame.depth,
+            frame.intrinsics,
+            c2w,
+            window=cfg.mapping.window,
+            samples=cfg.keyframes.overlap_samples,
+            generator=self.generator,
+        )
+        return [keyframes[i] for i in picks]
+
     def _map(self, views: list[Keyframe], intrinsics: torch.Tensor) -> None:
-        cfg, state = self.config, self.state
+        state = self.state
         assert state.gaussians is not None
-        if cfg.mapping.iters == 0:
+        if self.config.mapping.iters == 0:
             return
         state.gaussians = map_window(
-            state.gaussians, views, intrinsics, self.renderer, cfg.mapping, cfg.loss, state.scene_radius,
-            cfg.render.near, cfg.render.far, self.rng, self.kernels,
-        )  # fmt: skip
+            state.gaussians, views, intrinsics, state.scene_radius, self.rng, self.map_settings
+        )
 
     def _result(
         self,
@@ -189,35 +180,31 @@ class SplaTAM:
             c2w_gt=None if frame.c2w_gt is None else frame.c2w_gt.cpu(),
         )
 
-    def state_dict(self) -> dict:
-        """Everything to continue the run, copied to the host (safe to write from another thread
-        while SLAM goes on)."""
+    def checkpoint(self) -> Checkpoint:
+        """A host copy of everything needed to continue the run."""
         state = self.state
         assert state.gaussians is not None
-        return {
-            "gaussians": dict(vars(copied(state.gaussians, "cpu"))),
-            "keyframes": [
-                {"index": k.index, "color_u8": k.color_u8.cpu(), "depth": k.depth.cpu(), "c2w": k.c2w.cpu()}
-                for k in state.keyframes
-            ],
-            "poses": torch.stack(state.poses).cpu(),
-            "scene_radius": state.scene_radius,
-            "loss_history": list(state.loss_history),
-            "rng": self.rng.getstate(),
-            "generator": self.generator.get_state(),
-        }
+        return Checkpoint(
+            gaussians=copied(state.gaussians, "cpu"),
+            keyframes=[Keyframe(k.index, k.color_u8.cpu(), k.depth.cpu(), k.c2w.cpu()) for k in state.keyframes],
+            poses=torch.stack(state.poses).cpu(),
+            scene_radius=state.scene_radius,
+            loss_history=list(state.loss_history),
+            last_prior=None if state.last_prior is None else state.last_prior.cpu(),
+            rng_state=self.rng.getstate(),
+            generator_state=self.generator.get_state(),
+        )
 
-    def load_state_dict(self, saved: dict) -> None:
+    def restore(self, saved: Checkpoint) -> None:
+        """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         dev = self.device
         self.state = SlamState(
-            gaussians=Gaussians(**{n: saved["gaussians"][n].to(dev) for n in PARAMETER_NAMES}),
-            keyframes=[
-                Keyframe(k["index"], k["color_u8"].to(dev), k["depth"].to(dev), k["c2w"].to(dev))
-                for k in saved["keyframes"]
-            ],
-            poses=list(saved["poses"].to(dev)),
-            scene_radius=float(saved["scene_radius"]),
-            loss_history=list(saved["loss_history"]),
+            gaussians=copied(saved.gaussians, dev),
+            keyframes=[Keyframe(k.index, k.color_u8.to(dev), k.depth.to(dev), k.c2w.to(dev)) for k in saved.keyframes],
+            poses=list(saved.poses.to(dev)),
+            scene_radius=saved.scene_radius,
+            loss_history=list(saved.loss_history),
+            last_prior=None if saved.last_prior is None else saved.last_prior.to(dev),
         )
-        self.rng.setstate(saved["rng"])
-        self.generator.set_state(saved["generator"])
+        self.rng.setstate(saved.rng_state)
+        self.generator.set_state(saved.generator_state)

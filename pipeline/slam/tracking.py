@@ -13,6 +13,18 @@ from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.kernels import EAGER, SlamKernels
 
 
+@dataclass(frozen=True)
+class TrackSettings:
+    """What tracking needs besides the map, the frame and the starting pose."""
+
+    renderer: Renderer
+    config: TrackingConfig
+    loss: LossConfig
+    near: float  # metres
+    far: float
+    kernels: SlamKernels = EAGER
+
+
 @dataclass
 class TrackResult:
     c2w: torch.Tensor  # [4, 4] the pose with the lowest loss seen
@@ -20,22 +32,14 @@ class TrackResult:
     coverage: torch.Tensor  # [] fraction of valid-depth pixels the map covered at that pose
 
 
-def track(
-    gaussians: Gaussians,
-    frame: DeviceFrame,
-    c2w_init: torch.Tensor,
-    renderer: Renderer,
-    config: TrackingConfig,
-    weights: LossConfig,
-    near: float,
-    far: float,
-    kernels: SlamKernels = EAGER,
-) -> TrackResult:
-    """Fresh Adam on the world-to-camera quaternion and translation for `config.iters` steps.
+def track(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, settings: TrackSettings) -> TrackResult:
+    """Fresh Adam on the world-to-camera quaternion and translation for `config.iters` steps,
+    from camera-to-world `c2w_init` [4, 4].
 
     The Gaussians are frozen (passed without gradients). The best pose is chosen on the
     device: the loss at step i belongs to the parameters before step i's update.
     """
+    config, weights, kernels = settings.config, settings.loss, settings.kernels
     w2c_init = invert_pose(c2w_init)
     quat = rotmat_to_quat(w2c_init[:3, :3]).clone().requires_grad_(True)
     trans = w2c_init[:3, 3].clone().requires_grad_(True)
@@ -49,8 +53,10 @@ def track(
     best_coverage = torch.zeros((), device=quat.device)
     valid_pixels = (frame.depth > 0).sum().clamp(min=1)
     for _ in range(config.iters):
-        camera = Camera(pose_matrix(quat, trans), frame.intrinsics, frame.width, frame.height, near, far)
-        out = renderer(gaussians, camera)
+        w2c = pose_matrix(quat, trans)
+        out = settings.renderer(
+            gaussians, Camera(w2c, frame.intrinsics, frame.width, frame.height, settings.near, settings.far)
+        )
         loss, tracked_pixels = kernels.tracking_loss(
             out.color, out.depth, out.silhouette, frame.color, frame.depth,
             config.silhouette_threshold, weights.depth_weight, weights.color_weight,

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from tqdm import tqdm
 
-from pipeline.io.run_folder import RunFolder
 from pipeline.slam.splatam import FrameResult
 from pipeline.stages.queues import EndOfStream, StageQueue
 
@@ -32,11 +32,15 @@ def frame_row(result: FrameResult) -> dict[str, Any]:
     }
 
 
-class ResultSink:
-    """Keeps every frame's result, appends it to frames.csv and advances the progress bar."""
+RowWriter = Callable[[list[dict[str, Any]]], None]
 
-    def __init__(self, folder: RunFolder, total: int | None, initial: int = 0, progress: bool = True) -> None:
-        self.folder = folder
+
+class ResultSink:
+    """Keeps every frame's result, hands its row to `write_rows` (the run folder's frames.csv)
+    and advances the progress bar."""
+
+    def __init__(self, write_rows: RowWriter, total: int | None, initial: int = 0, progress: bool = True) -> None:
+        self.write_rows = write_rows
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
@@ -47,7 +51,7 @@ class ResultSink:
     def consume(self, result: FrameResult) -> None:
         self.arrivals.append(time.perf_counter())
         self.results.append(result)
-        self.folder.append_frames([frame_row(result)])
+        self.write_rows([frame_row(result)])
         if result.lost:
             self.lost_frames += 1
             log.warning("frame %d: tracking lost: %s", result.index, result.lost)

@@ -10,18 +10,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
+from torch.profiler import record_function
+
+from pipeline.errors import StageFailure
 from pipeline.stages.queues import END, EndOfStream, StageQueue
-
-
-class StageFailure(Exception):
-    """A stage raised: names the stage and the frame it was working on."""
-
-    def __init__(self, stage: str, frame: int | None, cause: BaseException) -> None:
-        where = f" on frame {frame}" if frame is not None else ""
-        super().__init__(f"stage '{stage}' failed{where}: {cause}")
-        self.stage, self.frame, self.cause = stage, frame, cause
 
 
 @dataclass
@@ -55,6 +50,11 @@ def frame_index(item: Any) -> int | None:
     return None
 
 
+def _in_range(name: str, fn: Callable[[Any], Any], item: Any) -> Any:
+    with record_function(name):
+        return fn(item)
+
+
 async def transform_stage(
     name: str,
     fn: Callable[[Any], Any],
@@ -63,13 +63,14 @@ async def transform_stage(
     executor: Executor,
     stats: StageStats,
 ) -> None:
-    """Apply `fn` to every item in order, off the event loop. An item for which `fn` returns
-    None is dropped (a live frame found unusable)."""
+    """Apply `fn` to every item in order, off the event loop, inside a profiler range named
+    `name`. An item for which `fn` returns None is dropped (a live frame found unusable)."""
     loop = asyncio.get_running_loop()
+    ranged = partial(_in_range, name, fn)
     while not isinstance(item := await inbox.get(), EndOfStream):
         start = time.perf_counter()
         try:
-            result = await loop.run_in_executor(executor, fn, item)
+            result = await loop.run_in_executor(executor, ranged, item)
         except Exception as exc:
             raise StageFailure(name, frame_index(item), exc) from exc
         stats.record(time.perf_counter() - start)

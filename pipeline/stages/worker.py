@@ -17,8 +17,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from pipeline.errors import StageFailure
 from pipeline.stages.queues import END, EndOfStream, StageQueue
-from pipeline.stages.stage import StageFailure, StageStats, frame_index
+from pipeline.stages.stage import StageStats, frame_index
 
 
 async def dedicated_thread_stage(

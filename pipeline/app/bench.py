@@ -1,0 +1,188 @@
+"""The benchmark harness: a matrix of presets x sequences x variants, one JSON and one table.
+
+Each cell is a full `run` (the same runtime and metrics as the CLI), so a benchmark number is
+always what a user would get.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from pipeline.app.report import WARMUP_FRAMES, versions
+from pipeline.app.run import run_slam
+from pipeline.config import Config, load_config, with_value
+from pipeline.devices import describe, resolve_device
+from pipeline.errors import UserError
+
+log = logging.getLogger("gsplatam")
+
+# Side-by-side switches; each is compared with the default configuration in the same invocation.
+ABLATIONS: dict[str, tuple[str, ...]] = {
+    "default": (),
+    "sync-loader": ("run.loader=sync",),
+    "no-compile": ("run.compile=off",),
+    "packed": ("render.packed=true",),
+    "3d-anisotropic": ("gaussians.isotropic=false",),
+    "2d-isotropic": ("gaussians.kind=2d",),
+    "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),
+}
+
+
+# Generated sequences by name; any other sequence is a dataset folder.
+SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
+    "synthetic": (),  # the Replica-like room, 1200x680 on a GPU
+    "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
+        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",
+        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
+    ),
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Cell:
+    sequence: str  # a dataset folder, or a name in SYNTHETIC_SEQUENCES
+    preset: str
+    variant: str = "default"
+
+
+def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
+    generated = list(SYNTHETIC_SEQUENCES.get(cell.sequence, ()))
+    config = load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]))
+    if cell.sequence not in SYNTHETIC_SEQUENCES:
+        config = with_value(config, "dataset.path", cell.sequence)
+    config = with_value(config, "run.output", str(output))
+    return with_value(config, "run.name", run_name)
+
+
+def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
+    t, runtime = metrics["time"], metrics["runtime"]
+    ate, render = metrics.get("ate") or {}, metrics.get("render") or {}
+    return {
+        "sequence": metrics["dataset"],
+        "preset": cell.preset,
+        "variant": cell.variant,
+        "frames": metrics["frames"],
+        "tracking_ms": 1000 * t["tracking_s"],
+        "densify_ms": 1000 * t["densify_s"],
+        "mapping_ms": 1000 * t["mapping_s"],
+        "total_ms": 1000 * t["total_s"],
+        "fps_wall": t["fps_wall"],
+        "fps_steady": t["fps_steady"],
+        "kernel_busy": (runtime.get("profile") or {}).get("kernel_busy_fraction"),
+        "gpu_busy": runtime.get("gpu_busy_fraction"),
+        "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
+        "gaussians": metrics["gaussians"],
+        "peak_gpu_gb": metrics.get("peak_gpu_memory_gb"),
+        "ate_rmse_cm": ate.get("rmse_cm"),
+        "ate_mean_cm": ate.get("mean_cm"),
+        "psnr_db": render.get("psnr_db"),
+        "ssim": render.get("ssim"),
+        "depth_l1_cm": render.get("depth_l1_cm"),
+        "lost_frames": metrics["lost_frames"],
+        "warmup_frames_excluded": t["warmup_frames_excluded"],
+    }
+
+
+def add_ratios(rows: list[dict[str, Any]]) -> None:
+    """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
+    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default"}
+    for row in rows:
+        base = defaults.get((row["sequence"], row["preset"]))
+        for key in ("total_ms", "ate_rmse_cm", "psnr_db"):
+            ok = base is not None and row[key] is not None and base[key]
+            row[f"{key}_ratio"] = row[key] / base[key] if base is not None and ok else None
+
+
+def run_matrix(
+    sequences: list[str],
+    presets: list[str],
+    variants: list[str],
+    base_overrides: list[str],
+    runs: Path,
+    progress: bool,
+    profile: bool = False,
+) -> dict[str, Any]:
+    """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
+    rows = []
+    for sequence in sequences:
+        for preset in presets:
+            for variant in variants:
+                cell = Cell(sequence, preset, variant)
+                name = f"{Path(sequence).name}_{preset}_{variant}"
+                log.info("bench: %s", name)
+                config = cell_config(cell, base_overrides, runs, name)
+                metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+                if metrics is None:
+                    raise UserError("benchmark interrupted before its first frame")
+                rows.append(row_of(cell, metrics))
+    add_ratios(rows)
+    device = resolve_device("auto")
+    return {
+        "device": describe(device, load_config("base")),
+        "driver": _driver_version(device),
+        "versions": versions(),
+        "overrides": base_overrides,
+        "profiled": profile,
+        "rows": rows,
+    }
+
+
+def _driver_version(device: torch.device) -> str | None:
+    if device.type != "cuda":
+        return None
+    try:
+        import subprocess
+
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"], capture_output=True, text=True
+        )
+        return out.stdout.strip().splitlines()[0]
+    except (OSError, IndexError):
+        return None
+
+
+COLUMNS = [
+    ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("frames", "{}"),
+    ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
+    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
+    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"),
+]  # fmt: skip
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lines = [
+        f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
+        f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame; the first "
+        f"{WARMUP_FRAMES} frames (initialisation, compilation) excluded."
+        + (
+            " Run under the torch profiler (slower; kernel_busy is from its kernel timeline)."
+            if report["profiled"]
+            else ""
+        ),
+        "",
+        "| " + " | ".join(name for name, _ in COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
+    ]
+    for row in report["rows"]:
+        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    json_path, md_path = out / f"{stem}.json", out / f"{stem}.md"
+    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    md_path.write_text(markdown(report))
+    return json_path, md_path
+
+
+def default_variants(ablations: bool) -> list[str]:
+    return list(ABLATIONS) if ablations else ["default"]

@@ -1,0 +1,108 @@
+"""What a run reports: timing summaries, software versions and the printed table."""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.runtime import RuntimeReport
+from pipeline.slam.splatam import FrameResult
+
+WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
+
+
+def timing_summary(results: list[FrameResult], report: RuntimeReport, arrivals: list[float]) -> dict[str, Any]:
+    """Mean seconds per stage after the warm-up frames, and frames per second."""
+    timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
+    mean = {
+        k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan
+        for k in ("tracking", "densify", "mapping", "total")
+    }
+    return {
+        "tracking_s": mean["tracking"],
+        "densify_s": mean["densify"],
+        "mapping_s": mean["mapping"],
+        "total_s": mean["total"],
+        "frames_timed": len(timed),
+        "warmup_frames_excluded": WARMUP_FRAMES,
+        "fps_wall": report.frames / report.wall_s if report.wall_s > 0 else 0.0,
+        "fps_steady": steady_fps(arrivals),
+    }
+
+
+def steady_fps(arrivals: list[float]) -> float | None:
+    """Frames per second of wall time after the warm-up frames: what a long run sustains."""
+    if len(arrivals) <= WARMUP_FRAMES + 1:
+        return None
+    return (len(arrivals) - 1 - WARMUP_FRAMES) / (arrivals[-1] - arrivals[WARMUP_FRAMES])
+
+
+def versions() -> dict[str, str | None]:
+    """Python, torch, CUDA, gsplat and the commit, for every results file."""
+    found: dict[str, str | None] = {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+    }
+    try:
+        from importlib.metadata import version
+
+        found["gsplat"] = version("gsplat")
+    except Exception:
+        found["gsplat"] = None
+    found["commit"] = os.environ.get("GSPLATAM_COMMIT") or _git_commit()  # a device copy's git is stale
+    return found
+
+
+def _git_commit() -> str | None:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).parent,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """A short human-readable summary of a run's metrics."""
+    t = metrics["time"]
+    rows = [
+        ("frames", f"{metrics['frames']}" + (" (interrupted)" if metrics["interrupted"] else "")),
+        ("Gaussians", f"{metrics['gaussians']:,}"),
+    ]
+    if metrics["ate"]:
+        rows.append(("ATE RMSE / mean", f"{metrics['ate']['rmse_cm']:.2f} / {metrics['ate']['mean_cm']:.2f} cm"))
+    if metrics["render"]:
+        r = metrics["render"]
+        rows += [
+            ("PSNR", f"{r['psnr_db']:.2f} dB"),
+            ("SSIM", f"{r['ssim']:.3f}"),
+            ("depth L1", f"{r['depth_l1_cm']:.2f} cm"),
+        ]
+    rows += [
+        ("tracking", f"{1000 * t['tracking_s']:.1f} ms/frame"),
+        ("densify + keyframes", f"{1000 * t['densify_s']:.1f} ms/frame"),
+        ("mapping", f"{1000 * t['mapping_s']:.1f} ms/frame"),
+        ("total", f"{1000 * t['total_s']:.1f} ms/frame"),
+        (
+            "throughput",
+            f"{t['fps_wall']:.2f} fps over the whole run"
+            + (f", {t['fps_steady']:.2f} after warm-up" if t["fps_steady"] else ""),
+        ),
+        ("tracking lost", f"{metrics['lost_frames']} frames"),
+    ]
+    if "peak_gpu_memory_gb" in metrics:
+        rows.append(("peak GPU memory", f"{metrics['peak_gpu_memory_gb']:.2f} GB"))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)

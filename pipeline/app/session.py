@@ -1,0 +1,155 @@
+"""One SLAM session, built the same way for `run` and `serve`: device, run folder, SLAM,
+its frame-boundary observers (periodic save, viewer), the graph, and its execution (with the
+profiler when asked)."""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from pipeline.app.profiling import all_threads_config, summarise
+from pipeline.config import Config, with_dataset_defaults
+from pipeline.devices import describe, resolve_device
+from pipeline.io.outputs.atomic import atomic_write_text
+from pipeline.io.outputs.periodic_save import PeriodicSave
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
+from pipeline.render import make_renderer, resolve_backend
+from pipeline.runtime import Graph, RuntimeReport, Service, execute
+from pipeline.slam.splatam import SplaTAM
+from pipeline.slam.state import Checkpoint
+from pipeline.source import Source
+from pipeline.stages.sinks import ResultSink
+from pipeline.stages.slam import FrameObserver, SlamStep
+from pipeline.stages.upload import make_uploader
+
+log = logging.getLogger("gsplatam")
+
+
+def complete_config(config: Config, device: torch.device, dataset_format: str) -> Config:
+    """The config as the run uses it: the render backend resolved for `device` and the values
+    SplaTAM tunes per dataset family filled in (written into the run folder as such)."""
+    config = with_dataset_defaults(config, dataset_format)
+    return replace(config, render=replace(config.render, backend=resolve_backend(config.render, device)))
+
+
+@dataclass
+class Session:
+    config: Config
+    device: torch.device
+    folder: RunFolder
+    slam: SplaTAM
+    source: Source
+    sink: ResultSink
+    saver: PeriodicSave | None = None
+    viewer: ViewerFeed | None = None
+    services: list[Service] = field(default_factory=list)
+
+    @property
+    def observers(self) -> list[FrameObserver]:
+        """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
+        return [o for o in (self.saver, self.viewer) if o is not None]
+
+
+def open_session(
+    config: Config,
+    source: Source,
+    folder: Path,
+    *,
+    progress: bool,
+    resume: Checkpoint | None = None,
+    total: int | None = None,
+    save_every_s: float | None = None,
+) -> Session:
+    """Write the config into `folder` and build SLAM (continuing from `resume`), the result sink
+    (a bar over `total` frames), the periodic save (every `save_every_s`; None: none) and the
+    viewer (when the config enables it). `config` must be complete (`complete_config`)."""
+    device = resolve_device(config.run.device)
+    run_info = {"source": source.name, "live": source.live, "gaussians": config.gaussians.kind}
+    run_folder = RunFolder(folder, run_info)
+    run_folder.write_config(config)
+    log.info("device: %s; run folder: %s", describe(device, config), run_folder.path)
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
+    initial = 0
+    if resume is not None:
+        slam.restore(resume)
+        initial = resume.frames_done
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    sink = ResultSink(run_folder.append_frames, total=total, initial=initial, progress=progress)
+    saver = PeriodicSave(run_folder, save_every_s) if save_every_s is not None else None
+    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")
+    services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
+    return Session(config, device, run_folder, slam, source, sink, saver, viewer, services)
+
+
+def graph_of(session: Session) -> Graph:
+    """source -> decode -> upload -> SLAM (with its observers) -> sink."""
+    config = session.config
+    return Graph(
+        source=session.source,
+        upload=make_uploader(session.device, slots=config.run.queue_size + 2),
+        slam=SlamStep(session.slam, session.source.last_index, observers=session.observers),
+        sink=session.sink,
+        queue_size=config.run.queue_size,
+        services=list(session.services),
+    )
+
+
+def execute_session(
+    session: Session, profile_trace: bool = False, on_graph: Callable[[Graph], None] | None = None
+) -> RuntimeReport:
+    """Run the session's graph to the end of its source or a stop; sink, saver and viewer are
+    closed whatever happens. `on_graph` sees the graph before it runs (the status endpoint)."""
+    graph = graph_of(session)
+    if on_graph is not None:
+        on_graph(graph)
+    try:
+        if not profile_trace:
+            return execute(graph, session.config.run.loader)
+        return _profiled(graph, session)
+    finally:
+        session.sink.close()
+        if session.saver is not None:
+            session.saver.close()
+        if session.viewer is not None:
+            session.viewer.close()
+
+
+def _profiled(graph: Graph, session: Session) -> RuntimeReport:
+    """Run under the torch profiler; write trace.json and profile.txt into the run folder."""
+    cuda = session.device.type == "cuda"
+    folder = session.folder.path
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities, experimental_config=all_threads_config()) as prof:
+        report = execute(graph, session.config.run.loader)
+    partial_trace = folder / ".trace.json.tmp"
+    prof.export_chrome_trace(str(partial_trace))
+    os.replace(partial_trace, folder / "trace.json")
+    summary, table = summarise(prof, cuda, report.wall_s)
+    report.profile = summary
+    atomic_write_text(folder / "profile.txt", _profile_text(summary, table, report.wall_s, cuda))
+    log.info("profile: %s and %s", folder / "trace.json", folder / "profile.txt")
+    return report
+
+
+def _profile_text(summary: dict[str, Any], table: str, wall_s: float, cuda: bool) -> str:
+    stages = "\n".join(
+        f"  {name:<10} {v['count']:>5} calls  host {v['cpu_ms']:9.1f} ms  device {v['device_ms']:9.1f} ms"
+        for name, v in summary["stages"].items()
+    )
+    busy = (
+        f"kernels and copies busy the GPU for {summary['kernel_busy_ms']:.0f} ms of {1000 * wall_s:.0f} ms wall "
+        f"({summary['kernel_busy_fraction']:.1%})\n"
+        if cuda
+        else ""
+    )
+    return f"{busy}per stage:\n{stages}\n\n{table}\n"

@@ -1,0 +1,1 @@
+"""Datasets on disk (Replica, TUM) and the generated synthetic room."""

@@ -1,0 +1,1 @@
+"""What a run writes: the run folder, the map (PLY), trajectories and the checkpoint."""

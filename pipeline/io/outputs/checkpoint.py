@@ -1,0 +1,110 @@
+"""The checkpoint file: tensors in safetensors, everything else as JSON in its header.
+
+Loading it never executes anything from the file (no pickle): a downloaded run folder cannot
+run code on `--resume`. Keyframe images are stored as they are kept (colour uint8, depth
+float32 metres), so a checkpoint of hundreds of keyframes stays a plain tensor file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save
+
+from pipeline.errors import DataError
+from pipeline.io.outputs.atomic import atomic_write_bytes
+from pipeline.render.types import Gaussians
+from pipeline.slam.gaussian_map import PARAMETER_NAMES
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.state import Checkpoint
+
+FORMAT = "gsplatam.checkpoint"
+VERSION = 1
+LEGACY_NAME = "checkpoint.pt"  # the pickle checkpoints of gsplatam 0.1, never loaded
+
+
+def write_checkpoint(path: Path, checkpoint: Checkpoint, run: dict[str, Any]) -> None:
+    """Write `checkpoint` atomically; `run` (JSON-able) describes the run it belongs to, so that a
+    resume can check it continues the same dataset, size and map kind."""
+    tensors = {f"gaussians.{n}": getattr(checkpoint.gaussians, n).contiguous() for n in PARAMETER_NAMES}
+    for i, k in enumerate(checkpoint.keyframes):
+        tensors.update(
+            {f"keyframes.{i}.color_u8": k.color_u8, f"keyframes.{i}.depth": k.depth, f"keyframes.{i}.c2w": k.c2w}
+        )
+    tensors["poses"] = checkpoint.poses
+    tensors["generator_state"] = checkpoint.generator_state
+    if checkpoint.last_prior is not None:
+        tensors["last_prior"] = checkpoint.last_prior
+    header = {
+        "format": FORMAT,
+        "version": VERSION,
+        "run": run,
+        "frames_done": checkpoint.frames_done,
+        "keyframe_indices": [k.index for k in checkpoint.keyframes],
+        "scene_radius": checkpoint.scene_radius,
+        "loss_history": checkpoint.loss_history,
+        "rng_state": _json_rng_state(checkpoint.rng_state),
+    }
+    data = save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
+    atomic_write_bytes(path, data)
+
+
+def read_checkpoint(path: Path) -> tuple[Checkpoint, dict[str, Any]]:
+    """-> (the checkpoint, the `run` description it was written with). Raises DataError naming
+    the file for anything that is not a complete checkpoint of this format."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            tensors = {key: f.get_tensor(key) for key in f.keys()}
+    except FileNotFoundError:
+        raise DataError(f"no checkpoint at {path}") from None
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise DataError(f"{path} is not a readable checkpoint (truncated or corrupt?): {exc}") from None
+    try:
+        header = json.loads(meta["gsplatam"])
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')!r}")
+        if header.get("version") != VERSION:
+            raise ValueError(f"version {header.get('version')!r}, this gsplatam reads version {VERSION}")
+        return _checkpoint_of(header, tensors), header["run"]
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
+
+
+def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Checkpoint:
+    keyframes = [
+        Keyframe(
+            index, tensors[f"keyframes.{i}.color_u8"], tensors[f"keyframes.{i}.depth"], tensors[f"keyframes.{i}.c2w"]
+        )
+        for i, index in enumerate(header["keyframe_indices"])
+    ]
+    checkpoint = Checkpoint(
+        gaussians=Gaussians(**{n: tensors[f"gaussians.{n}"] for n in PARAMETER_NAMES}),
+        keyframes=keyframes,
+        poses=tensors["poses"],
+        scene_radius=float(header["scene_radius"]),
+        loss_history=[float(v) for v in header["loss_history"]],
+        last_prior=tensors.get("last_prior"),
+        rng_state=_rng_state_of(header["rng_state"]),
+        generator_state=tensors["generator_state"],
+    )
+    if checkpoint.frames_done != header["frames_done"]:
+        raise ValueError(f"{checkpoint.frames_done} poses for {header['frames_done']} frames")
+    return checkpoint
+
+
+def _json_rng_state(state: tuple[Any, ...]) -> list[Any]:
+    """random.Random.getstate() (version, 625 ints, gauss_next) as JSON values."""
+    version, internal, gauss_next = state
+    return [version, list(internal), gauss_next]
+
+
+def _rng_state_of(value: list[Any]) -> tuple[Any, ...]:
+    version, internal, gauss_next = value
+    if not (isinstance(version, int) and all(isinstance(v, int) for v in internal)):
+        raise ValueError("malformed random state")
+    return (version, tuple(internal), gauss_next)

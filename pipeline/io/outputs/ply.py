@@ -1,0 +1,90 @@
+"""The common 3D Gaussian-splatting PLY: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3.
+
+Binary little-endian float32, as written by the original 3DGS code and read by common splat
+viewers. Colours are stored as degree-0 spherical-harmonic coefficients, f_dc = (rgb - 0.5) / C0;
+opacity as a logit; scales as logs (an isotropic scale repeated); rotations as (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+import torch
+
+from pipeline.errors import DataError
+from pipeline.io.outputs.atomic import atomic_write
+from pipeline.render.types import Gaussians
+
+SH_C0 = 0.28209479177387814
+PROPERTIES = (
+    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    + [f"scale_{i}" for i in range(3)]
+    + [f"rot_{i}" for i in range(4)]
+)
+
+
+def write_ply(path: Path, gaussians: Gaussians) -> None:
+    """Write the map atomically (binary little-endian float32)."""
+    n = len(gaussians)
+    columns = {
+        "xyz": gaussians.means,
+        "normals": torch.zeros(n, 3),
+        "f_dc": (gaussians.colors - 0.5) / SH_C0,
+        "opacity": gaussians.opacity_logits[:, None],
+        "scale": gaussians.log_scales.expand(-1, 3),
+        "rot": gaussians.quats,
+    }
+    data = np.concatenate([c.detach().cpu().float().numpy() for c in columns.values()], axis=1).astype("<f4")
+    header = "\n".join(
+        ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+        + [f"property float {name}" for name in PROPERTIES]
+        + ["end_header"]
+    )
+
+    def write(f: IO[bytes]) -> None:
+        f.write((header + "\n").encode("ascii"))
+        f.write(data.tobytes())
+
+    atomic_write(path, write)
+
+
+def read_ply(path: Path) -> Gaussians:
+    """Read a 3DGS PLY (any property order; extra properties such as f_rest_* are ignored)."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise DataError(f"cannot read {path}: {exc}") from None
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply") or end < 0:
+        raise DataError(f"{path} is not a PLY file")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise DataError(f"{path}: only binary little-endian PLY is supported")
+    count, names, types = 0, [], []
+    ply_types = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+    for line in header:
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"]:
+            count = int(parts[2])
+        elif parts[:1] == ["property"] and len(parts) == 3:
+            if parts[1] not in ply_types:
+                raise DataError(f"{path}: unsupported property type {parts[1]}")
+            types.append(ply_types[parts[1]])
+            names.append(parts[2])
+    missing = [p for p in PROPERTIES if p not in names and not p.startswith("n")]
+    if missing:
+        raise DataError(f"{path}: not a Gaussian-splatting PLY (missing {', '.join(missing)})")
+    table = np.frombuffer(raw, dtype=np.dtype(list(zip(names, types))), count=count, offset=end + len(b"end_header\n"))
+
+    def cols(*keys: str) -> torch.Tensor:
+        return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=1))
+
+    return Gaussians(
+        means=cols("x", "y", "z"),
+        quats=cols("rot_0", "rot_1", "rot_2", "rot_3"),
+        log_scales=cols("scale_0", "scale_1", "scale_2"),
+        opacity_logits=cols("opacity")[:, 0],
+        colors=cols("f_dc_0", "f_dc_1", "f_dc_2") * SH_C0 + 0.5,
+    )

@@ -1,0 +1,1 @@
+"""What a person watches: the web viewer and the status endpoint."""

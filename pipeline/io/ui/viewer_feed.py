@@ -1,0 +1,210 @@
+"""Feeding the web viewer without slowing SLAM.
+
+At a frame boundary (the SLAM-stage observer) the map and the frame are cloned on the device,
+at most `max_hz` times a second and only when the viewer thread is idle; that thread copies
+them to the host on its own CUDA stream, renders depth and silhouette at the latest pose and
+pushes everything to the browser. A slow or absent browser only makes snapshots rarer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline.config import Config, RenderConfig
+from pipeline.frame import DeviceFrame
+from pipeline.geometry import invert_pose, quat_to_rotmat
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.ui.viewer import FrameView, MapView, Viewer, colorize_depth
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.gaussian_map import copied
+from pipeline.slam.splatam import FrameResult, SplaTAM
+
+log = logging.getLogger("gsplatam")
+
+DISPLAY_WIDTH = 320  # pixels: the images in the viewer's panel (and the frustum's) are this wide at most
+
+
+def map_view(gaussians: Gaussians) -> MapView:
+    """Activated parameters on the host: covariance R S^2 R^T, opacity sigmoid(logit)."""
+    with torch.no_grad():
+        rotation = quat_to_rotmat(gaussians.quats)
+        covariances = (rotation * gaussians.scales().square()[:, None, :]) @ rotation.transpose(1, 2)
+        return MapView(
+            centers=gaussians.means.float().cpu().numpy(),
+            covariances=covariances.float().cpu().numpy(),
+            rgbs=gaussians.colors.clamp(0, 1).float().cpu().numpy(),
+            opacities=torch.sigmoid(gaussians.opacity_logits)[:, None].float().cpu().numpy(),
+        )
+
+
+@dataclass
+class Snapshot:
+    """Device tensors cloned at a frame boundary (SLAM changes the map in place afterwards)."""
+
+    gaussians: Gaussians
+    poses: torch.Tensor  # [F, 4, 4] camera-to-world
+    frame: DeviceFrame
+    result: FrameResult
+    fps: float
+    ready: torch.cuda.Event | None  # recorded after the clones on the compute stream
+
+
+def _to_u8(image: torch.Tensor) -> np.ndarray:
+    return (image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
+
+
+class ViewerFeed:
+    """The SLAM-stage observer that feeds `viewer`; also carries out its pause and save buttons
+    (pausing holds SLAM at a frame boundary; saving writes map.ply from a host copy in a thread)."""
+
+    def __init__(
+        self,
+        viewer: Viewer,
+        renderer: Renderer,
+        render: RenderConfig,
+        max_hz: float,
+        folder: RunFolder,
+        map_every_s: float = 0.0,
+    ) -> None:
+        self.viewer = viewer
+        self.map_every_s = map_every_s
+        self._map_sent = -float("inf")
+        self.folder = folder
+        self.renderer = renderer
+        self.render = render
+        self.period_s = 1.0 / max_hz
+        self.released = threading.Event()  # set when the run stops: pausing is over
+        self.snapshots = 0
+        self._handoff: queue.Queue[Snapshot | None] = queue.Queue(maxsize=1)
+        self._last = -float("inf")
+        self._previous_frame_at: float | None = None
+        self._fps = 0.0
+        self._stream: torch.cuda.Stream | None = None
+        self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
+        self._thread.start()
+
+    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
+        now = time.perf_counter()
+        if self._previous_frame_at is not None:
+            self._fps = 1.0 / max(now - self._previous_frame_at, 1e-9)
+        self._previous_frame_at = now
+        while not self.viewer.running.wait(0.2) and not self.released.is_set():
+            pass  # paused from the browser
+        if self.viewer.save_requested.is_set() and slam.state.gaussians is not None:
+            self.viewer.save_requested.clear()
+            host = copied(slam.state.gaussians, "cpu")
+            threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
+        if now - self._last < self.period_s or self._handoff.full() or slam.state.gaussians is None:
+            return
+        if not self.viewer.clients():
+            return  # nobody is watching: no snapshot
+        self._last = now
+        cuda = frame.depth.is_cuda
+        snapshot = Snapshot(
+            gaussians=copied(slam.state.gaussians),
+            poses=torch.stack(slam.state.poses),
+            frame=frame,
+            result=result,
+            fps=self._fps,
+            ready=torch.cuda.Event() if cuda else None,
+        )
+        if snapshot.ready is not None:
+            snapshot.ready.record()
+            if self._stream is None:
+                self._stream = torch.cuda.Stream(frame.depth.device)
+        self.snapshots += 1
+        self._handoff.put_nowait(snapshot)
+
+    def _save(self, gaussians: Gaussians) -> None:
+        try:
+            self.folder.write_map(gaussians)
+            log.info("viewer: saved %d Gaussians to %s", len(gaussians), self.folder.map)
+        except OSError as exc:
+            log.error("viewer: saving %s failed: %s", self.folder.map, exc)
+
+    def _work(self) -> None:
+        while (snapshot := self._handoff.get()) is not None:
+            try:
+                self._show(snapshot)
+            except Exception:  # the viewer must never stop SLAM
+                log.exception("viewer: update failed")
+
+    def _show(self, snap: Snapshot) -> None:
+        stream = torch.cuda.stream(self._stream) if self._stream is not None else contextlib.nullcontext()
+        with stream, torch.no_grad():
+            if snap.ready is not None:
+                torch.cuda.current_stream().wait_event(snap.ready)
+            frame, cfg = snap.frame, self.render
+            scale = min(1.0, DISPLAY_WIDTH / frame.width)  # the panel shows thumbnails: render and send them
+            width, height = max(1, round(frame.width * scale)), max(1, round(frame.height * scale))
+            intrinsics = frame.intrinsics.clone()
+            intrinsics[:2] *= torch.tensor([[width / frame.width], [height / frame.height]], device=intrinsics.device)
+            out = self.renderer(
+                snap.gaussians, Camera(invert_pose(snap.poses[-1]), intrinsics, width, height, cfg.near, cfg.far)
+            )
+            color = F.interpolate(frame.color.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(
+                1, 2, 0
+            )
+            depth = F.interpolate(frame.depth[None, None], size=(height, width), mode="nearest")[0, 0]
+            far = float(depth.max()) or 1.0
+            view = FrameView(
+                index=frame.index,
+                poses=snap.poses.double().cpu().numpy(),
+                intrinsics=intrinsics.double().cpu().numpy(),
+                color=_to_u8(color),
+                depth=colorize_depth(depth.cpu().numpy(), far),
+                rendered_depth=colorize_depth(out.depth.cpu().numpy(), far),
+                silhouette=np.repeat(_to_u8(out.silhouette)[..., None], 3, axis=-1),
+                stats=self._stats(snap),
+            )
+            splats = None
+            if time.monotonic() - self._map_sent >= self.map_every_s:
+                splats = map_view(snap.gaussians)  # the costly part: a host copy, packing and sending
+                self._map_sent = time.monotonic()
+        if splats is not None:
+            self.viewer.show_map(splats)
+        self.viewer.show_frame(view)
+
+    def _stats(self, snap: Snapshot) -> str:
+        r = snap.result
+        ms = {k: 1000 * v for k, v in r.seconds.items()}
+        tracking = f"lost ({r.lost})" if r.lost else "ok"
+        return (
+            f"**frame {r.index}** &nbsp; {snap.fps:.1f} fps &nbsp; {r.gaussians:,} Gaussians\n\n"
+            f"tracking {ms['tracking']:.0f} ms, densify {ms['densify']:.0f} ms, mapping {ms['mapping']:.0f} ms "
+            f"(total {ms['total']:.0f} ms)\n\ntracking: {tracking}"
+        )
+
+    def close(self) -> None:
+        """Stop the viewer thread after the update in progress, then the web server."""
+        self.released.set()
+        with contextlib.suppress(queue.Empty):
+            self._handoff.get_nowait()  # a snapshot not yet shown is dropped
+        self._handoff.put(None)
+        self._thread.join(timeout=30)
+        self.viewer.close()
+
+
+def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> ViewerFeed | None:
+    """Start the viewer when `config.viewer.enabled`; -> the observer to give the SLAM stage."""
+    if not config.viewer.enabled:
+        return None
+    viewer = Viewer(config.viewer.host, config.viewer.port, title)
+    v = config.viewer
+    return ViewerFeed(viewer, slam.renderer, config.render, v.max_hz, folder, v.map_every_s)
+
+
+async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:
+    """A runtime service: once the run is asked to stop, a paused SLAM may go on to finish."""
+    await stop.wait()
+    feed.released.set()

@@ -1,0 +1,42 @@
+"""What SLAM carries from frame to frame, and its host copy that a checkpoint holds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from pipeline.render.types import Gaussians
+from pipeline.slam.keyframes import Keyframe
+
+
+@dataclass
+class SlamState:
+    """The live state, on the compute device."""
+
+    gaussians: Gaussians | None = None
+    keyframes: list[Keyframe] = field(default_factory=list)
+    poses: list[torch.Tensor] = field(default_factory=list)  # [4, 4] estimated camera-to-world per frame
+    scene_radius: float = 0.0  # metres
+    loss_history: list[float] = field(default_factory=list)  # per-pixel tracking loss of earlier frames
+    last_prior: torch.Tensor | None = None  # [4, 4] the last frame's device pose (camera-to-world), if it had one
+
+
+@dataclass
+class Checkpoint:
+    """Everything needed to continue a run, on the host: a copy SLAM's later updates do not
+    touch (safe to write from another thread while SLAM goes on)."""
+
+    gaussians: Gaussians
+    keyframes: list[Keyframe]
+    poses: torch.Tensor  # [F, 4, 4] estimated camera-to-world per frame
+    scene_radius: float  # metres
+    loss_history: list[float]
+    last_prior: torch.Tensor | None  # [4, 4] camera-to-world
+    rng_state: tuple[Any, ...]  # random.Random.getstate(): mapping's view picks
+    generator_state: torch.Tensor  # torch.Generator.get_state() (uint8): keyframe sampling
+
+    @property
+    def frames_done(self) -> int:
+        return int(self.poses.shape[0])

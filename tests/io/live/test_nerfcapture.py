@@ -1,0 +1,215 @@
+"""NeRFCapture over DDS: pose conventions, malformed messages, the loopback, and a live SLAM run."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import signal
+import subprocess
+import sys
+import threading
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from live_helpers import free_port, read_status, wait_for
+
+from pipeline.app.serve import live_ate_cm
+from pipeline.config import DatasetConfig, SyntheticConfig
+from pipeline.io.datasets.base import Dataset
+from pipeline.io.datasets.loader import open_dataset
+from pipeline.io.datasets.synthetic_writer import write_synthetic
+from pipeline.io.live.fake_nerfcapture import ARKIT_WORLD, publish_dataset
+from pipeline.io.live.nerfcapture import (
+    NeRFCapturePacket,
+    NeRFCaptureSource,
+    arkit_to_opencv,
+    opencv_to_arkit,
+    sample_from_frame,
+)
+from pipeline.slam.splatam import FrameResult
+
+
+@pytest.fixture(scope="module")
+def capture_dataset(tmp_path_factory: pytest.TempPathFactory) -> Dataset:
+    path = tmp_path_factory.mktemp("nerfcapture") / "room"
+    write_synthetic(path, SyntheticConfig(frames=12, width=64, height=48, seed=7), progress=False)
+    return open_dataset(DatasetConfig(path=str(path)))
+
+
+def _pose(rotvec: list[float], translation: list[float]) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.array(rotvec))[0]
+    pose[:3, 3] = translation
+    return pose
+
+
+def test_pose_conversion_round_trips_and_reads_column_major() -> None:
+    c2w = _pose([0.3, -0.2, 0.5], [1.0, 2.0, 3.0])
+    assert np.allclose(arkit_to_opencv(opencv_to_arkit(c2w)), c2w, atol=1e-12)
+    arkit = np.eye(4)
+    arkit[:3, 3] = [0.1, 0.2, 0.3]
+    message = arkit.T.reshape(-1)  # column-major: the translation is at 12, 13, 14
+    assert np.allclose(message[12:15], [0.1, 0.2, 0.3])
+    assert np.allclose(arkit_to_opencv(message)[:3, 3], [0.1, -0.2, -0.3])
+
+
+def test_an_arkit_camera_and_its_opencv_twin_look_the_same_way() -> None:
+    arkit = _pose([0.0, 0.7, 0.0], [0.0, 0.0, 0.0])  # yawed about ARKit's up axis (y)
+    opencv = arkit_to_opencv(arkit.T.reshape(-1))
+    flip = np.diag([1.0, -1.0, -1.0])
+    arkit_forward = -arkit[:3, 2]  # ARKit cameras look down their -z
+    assert np.allclose(opencv[:3, 2], flip @ arkit_forward)  # OpenCV cameras look down +z
+    assert np.allclose(opencv[:3, :3] @ opencv[:3, :3].T, np.eye(3))
+
+
+def _packet_source() -> NeRFCaptureSource:
+    return NeRFCaptureSource()
+
+
+def _sample(dataset: Dataset, frame_id: int, **changes):
+    frame = dataset.decode(dataset.refs[frame_id % len(dataset)])
+    return replace(sample_from_frame(frame, frame_id, ARKIT_WORLD @ frame.c2w_gt), **changes)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"width": 63}, "image holds"),
+        ({"depth_image": b"\0" * 12}, "depth buffer holds"),
+        ({"depth_width": 0}, "depth size"),
+        ({"fl_x": float("nan")}, "intrinsics"),
+        ({"transform_matrix": [float("nan")] * 16}, "NaN"),
+    ],
+)
+def test_malformed_messages_are_skipped_counted_and_named(capture_dataset: Dataset, changes, message, caplog) -> None:
+    source = _packet_source()
+    assert source._accept(_sample(capture_dataset, 1, **changes)) is None
+    assert source.counters.rejected == 1 and message in source.counters.last_error
+    assert source._accept(_sample(capture_dataset, 2)) is not None  # the stream goes on
+
+
+def test_duplicate_out_of_order_and_depthless_frames_are_skipped(capture_dataset: Dataset) -> None:
+    source = _packet_source()
+    first = source._accept(_sample(capture_dataset, 3))
+    assert first is not None and first.index == 0
+    assert np.allclose(first.c2w, np.eye(4), atol=1e-6)  # relative to the first frame
+    assert source._accept(_sample(capture_dataset, 3)) is None
+    assert source._accept(_sample(capture_dataset, 2)) is None
+    assert source._accept(_sample(capture_dataset, 4, has_depth=False)) is None
+    second = source._accept(_sample(capture_dataset, 5))
+    assert second is not None and second.index == 1
+    assert source.counters.rejected == 2 and source.counters.skipped == 1 and source.counters.received == 5
+
+
+@pytest.mark.parametrize("use", ["initial_guess", "groundtruth", "ignore"])
+def test_the_decoder_upsamples_depth_and_routes_the_device_pose(capture_dataset: Dataset, use: str) -> None:
+    frame = capture_dataset.decode(capture_dataset.refs[2])
+    sample = sample_from_frame(frame, 9, np.eye(4))
+    depth = np.frombuffer(sample.depth_image, np.float32).copy()
+    depth[0] = np.nan
+    sample = replace(sample, depth_image=depth.tobytes())
+    pose = _pose([0.1, 0, 0], [0, 0, 1])
+    decoded = NeRFCaptureSource(use).decode(NeRFCapturePacket(0, 1.5, sample, pose))
+    assert decoded.depth.shape == (48, 64) and decoded.depth[0, 0] == 0.0
+    assert np.array_equal(decoded.depth[::2, ::2][1:, 1:], depth.reshape(24, 32)[1:, 1:])
+    assert np.allclose(decoded.intrinsics, frame.intrinsics)
+    assert (decoded.c2w_prior is not None) == (use == "initial_guess")
+    assert (decoded.c2w_gt is not None) == (use == "groundtruth")
+
+
+def test_live_ate_is_a_root_mean_square_over_frames_with_a_reference() -> None:
+    def result(i: int, offset: float, gt: bool) -> FrameResult:
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[0, 3] = i
+        ref = c2w.clone()
+        ref[1, 3] += offset
+        return FrameResult(i, 0.0, c2w, {}, 0, 0, 0.0, 1.0, c2w_gt=ref if gt else None)
+
+    assert live_ate_cm([result(i, 0.0, False) for i in range(5)]) is None
+    errors = [0.0, 0.02, -0.02, 0.0, 0.0]
+    ate = live_ate_cm([result(i, e, True) for i, e in enumerate(errors)])
+    assert ate is not None and 0.0 < ate <= 100 * np.sqrt(np.mean(np.square(errors)))
+
+
+@pytest.mark.live
+def test_loopback_receives_every_frame_bit_identical(capture_dataset: Dataset, dds_domain: int) -> None:
+    stop = threading.Event()
+    publisher = threading.Thread(target=publish_dataset, args=(capture_dataset, 20.0, 30.0, stop, dds_domain))
+
+    async def receive() -> list[NeRFCapturePacket]:
+        packets = []
+        async with asyncio.timeout(60):
+            async for packet in NeRFCaptureSource(domain_id=dds_domain):
+                packets.append(packet)
+                if len(packets) == len(capture_dataset):
+                    return packets
+        return packets
+
+    publisher.start()
+    try:
+        packets = asyncio.run(receive())
+    finally:
+        stop.set()
+        publisher.join(timeout=10)
+    assert [p.sample.id for p in packets] == list(range(1, len(capture_dataset) + 1))
+    for packet, ref in zip(packets, capture_dataset.refs):
+        frame = capture_dataset.decode(ref)
+        sent = sample_from_frame(frame, packet.sample.id, ARKIT_WORLD @ frame.c2w_gt)
+        assert bytes(packet.sample.image) == sent.image
+        assert bytes(packet.sample.depth_image) == sent.depth_image
+        assert (packet.sample.fl_x, packet.sample.cx) == (np.float32(sent.fl_x), np.float32(sent.cx))
+        assert np.abs(packet.c2w - frame.c2w_gt).max() < 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.live
+@pytest.mark.parametrize("how", [["serve", "--nerfcapture"], ["run", "nerfcapture:"]])
+def test_live_reconstruction_from_the_fake_publisher(
+    capture_dataset: Dataset, tmp_path: Path, how, dds_domain: int
+) -> None:
+    status_port = free_port()
+    log_path = tmp_path / "daemon.log"
+    command = [
+        sys.executable, "-m", "pipeline", *how, "--device", "cpu", "--preset", "tiny",
+        "--output", str(tmp_path), "--name", "live", "--quiet", "--set", f"live.status_port={status_port}",
+        "--set", f"live.dds_domain={dds_domain}",
+    ]  # fmt: skip
+    stop = threading.Event()
+    publisher = threading.Thread(target=publish_dataset, args=(capture_dataset, 2.0, 60.0, stop, dds_domain))
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
+    publisher.start()
+    try:
+        wait_for(lambda: (read_status(status_port) or {}).get("processed", 0) >= 6, 120, "6 frames", log_path)
+    finally:
+        stop.set()
+        publisher.join(timeout=10)
+        daemon.send_signal(signal.SIGINT)
+        code = daemon.wait(timeout=60)
+    assert code == 0, log_path.read_text()[-3000:]
+    metrics = json.loads((tmp_path / "live" / "metrics.json").read_text())
+    assert metrics["frames"] >= 6 and metrics["counters"]["rejected"] == 0
+    assert (tmp_path / "live" / "map.ply").exists()
+    rows = np.loadtxt(tmp_path / "live" / "trajectory.txt", ndmin=2)  # TUM: t x y z qx qy qz qw
+    by_time = {round(r.timestamp, 6): r.c2w_gt for r in capture_dataset.refs}
+    reference = np.stack([by_time[round(t, 6)][:3, 3] for t in rows[:, 0]])
+    assert np.sqrt(np.mean(np.sum((rows[:, 1:4] - reference) ** 2, axis=1))) < 0.05  # metres, no alignment
+
+
+@pytest.mark.live
+def test_no_publisher_is_said_clearly_and_waited_for(caplog, dds_domain: int) -> None:
+    async def listen() -> None:
+        async for _ in NeRFCaptureSource(domain_id=dds_domain):
+            pass
+
+    async def main() -> None:
+        with caplog.at_level(logging.INFO, "gsplatam"), pytest.raises(TimeoutError):
+            await asyncio.wait_for(listen(), 1.5)
+
+    asyncio.run(main())
+    assert f"waiting for a publisher on DDS domain {dds_domain}, topic 'Frames'" in caplog.text

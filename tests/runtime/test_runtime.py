@@ -1,0 +1,168 @@
+from __future__ import annotations
+
+import asyncio
+import random
+import time
+from dataclasses import dataclass
+
+import pytest
+
+from pipeline.errors import StageFailure
+from pipeline.runtime import Graph, run_graph, run_sync
+from pipeline.source import SourceCounters
+from pipeline.stages.queues import END, EndOfStream, StageQueue
+
+
+@dataclass
+class Item:
+    index: int
+
+
+class ListSource:
+    """A Source of `n` items whose decode is `decode`."""
+
+    name = "list"
+    live = False
+
+    def __init__(self, n: int, decode=None) -> None:
+        self.n = n
+        self.decode = decode or jittery
+        self.counters = SourceCounters()
+
+    @property
+    def last_index(self) -> int:
+        return self.n - 1
+
+    async def __aiter__(self):
+        for i in range(self.n):
+            yield Item(i)
+
+
+class FakeSlam:
+    """Stands in for SlamStep: records the order and can be slow or fail."""
+
+    def __init__(self, delay: float = 0.0, fail_at: int | None = None) -> None:
+        self.delay, self.fail_at, self.seen = delay, fail_at, []
+
+    def __call__(self, item: Item) -> Item:
+        if item.index == self.fail_at:
+            raise RuntimeError("boom")
+        time.sleep(self.delay)
+        self.seen.append(item.index)
+        return item
+
+    def gpu_gaps_ms(self) -> list[float]:
+        return []
+
+    def gpu_busy_ms(self) -> float:
+        return 0.0
+
+    def gpu_wall_ms(self) -> float:
+        return 0.0
+
+
+class CollectSink:
+    def __init__(self) -> None:
+        self.results: list[Item] = []
+
+    def consume(self, item: Item) -> None:
+        self.results.append(item)
+
+    async def drain(self, inbox: StageQueue) -> None:
+        while not isinstance(item := await inbox.get(), EndOfStream):
+            self.consume(item)
+
+
+def jittery(item: Item) -> Item:
+    time.sleep(random.random() * 0.003)
+    return item
+
+
+def graph(n: int, slam: FakeSlam, decode=jittery, queue_size: int = 3) -> Graph:
+    return Graph(ListSource(n, decode), jittery, slam, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
+
+
+def run(g: Graph, stop: asyncio.Event | None = None, timeout: float = 30.0):
+    async def main():
+        return await asyncio.wait_for(run_graph(g, stop or asyncio.Event()), timeout)
+
+    return asyncio.run(main())
+
+
+def test_frames_reach_slam_in_order_and_none_is_lost() -> None:
+    slam = FakeSlam()
+    g = graph(60, slam)
+    report = run(g)
+    assert slam.seen == list(range(60))
+    assert [r.index for r in g.sink.results] == list(range(60))
+    assert report.frames == 60 and not report.interrupted
+    assert report.stages["decode"]["items"] == 60
+
+
+def test_a_slow_consumer_bounds_every_queue() -> None:
+    slam = FakeSlam(delay=0.01)
+    g = graph(30, slam, queue_size=2)
+    report = run(g)
+    assert slam.seen == list(range(30))
+    assert all(q["max_depth"] <= 2 for name, q in report.queues.items() if name != "results")
+    assert all(q["dropped"] == 0 for q in report.queues.values())
+
+
+def test_keep_newest_drops_the_oldest_and_counts() -> None:
+    async def main():
+        queue: StageQueue[int] = StageQueue(3, "keep_newest")
+        for i in range(10):
+            await queue.put(i)
+        await queue.put(END)  # the end marker waits for room instead of dropping
+        return queue
+
+    async def with_consumer():
+        queue: StageQueue[int] = StageQueue(3, "keep_newest")
+        for i in range(10):
+            await queue.put(i)
+        got = [await queue.get() for _ in range(3)]
+        return queue, got
+
+    queue, got = asyncio.run(with_consumer())
+    assert got == [7, 8, 9] and queue.dropped == 7
+    with pytest.raises(asyncio.TimeoutError):
+        asyncio.run(asyncio.wait_for(main(), 0.2))
+
+
+@pytest.mark.parametrize("where", ["decode", "slam"])
+def test_a_failing_stage_stops_the_graph_and_names_stage_and_frame(where: str) -> None:
+    def failing_decode(item: Item) -> Item:
+        if item.index == 7:
+            raise ValueError("boom")
+        return item
+
+    slam = FakeSlam(fail_at=7 if where == "slam" else None)
+    g = graph(100, slam, decode=failing_decode if where == "decode" else jittery)
+    with pytest.raises(StageFailure, match=f"stage '{where}' failed on frame 7: boom"):
+        run(g, timeout=10.0)
+    assert len(slam.seen) <= 7
+
+
+@pytest.mark.parametrize("stop_after", [0.0, 0.013, 0.05, 0.107, 0.2])
+def test_stop_finishes_the_current_frame_and_ends_cleanly(stop_after: float) -> None:
+    """At any moment (asyncio.run also waits for every helper thread, so a hang shows here)."""
+    slam = FakeSlam(delay=0.02)
+    g = graph(1000, slam)
+
+    async def main():
+        stop = asyncio.Event()
+        asyncio.get_running_loop().call_later(stop_after, stop.set)
+        return await asyncio.wait_for(run_graph(g, stop), 10.0)
+
+    report = asyncio.run(main())
+    assert report.interrupted and report.frames < 1000
+    assert slam.seen == list(range(len(slam.seen))) and len(g.sink.results) == len(slam.seen)
+
+
+def test_the_sync_loop_processes_the_same_frames() -> None:
+    import threading
+
+    slam = FakeSlam()
+    g = graph(20, slam)
+    report = run_sync(g, threading.Event())
+    assert slam.seen == list(range(20)) and report.loader == "sync"
