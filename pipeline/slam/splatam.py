@@ -19,7 +19,7 @@ from pipeline.slam.keyframes import Keyframe, select_window
 from pipeline.slam.mapping import MapSettings, map_window
 from pipeline.slam.state import Checkpoint, SlamState
 from pipeline.slam.timing import StageClock
-from pipeline.slam.tracking import TrackSettings, track
+from pipeline.slam.tracking import TrackSettings, make_tracker
 
 LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
 LOSS_HISTORY_MIN = 5
@@ -51,7 +51,7 @@ class SplaTAM:
         compiled = config.run.compile == "on" or (config.run.compile == "auto" and device.type == "cuda")
         kernels = make_kernels(compiled)
         near, far = config.render.near, config.render.far
-        self.track_settings = TrackSettings(renderer, config.tracking, config.loss, near, far, kernels)
+        self.tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels))
         self.map_settings = MapSettings(renderer, config.mapping, config.loss, near, far, kernels)
 
     @property
@@ -71,7 +71,7 @@ class SplaTAM:
             else:
                 with self.clock.stage("tracking"):
                     c2w_init = self._initial_pose(frame)
-                    tracked = track(detached(state.gaussians), frame, c2w_init, self.track_settings)
+                    tracked = self.tracker(detached(state.gaussians), frame, c2w_init)
                     c2w, loss, coverage = tracked.c2w, tracked.best_loss, tracked.coverage
                 with self.clock.stage("densify"):
                     added = self._densify(frame, c2w)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
+from typing import Protocol
 
 import torch
 
@@ -30,6 +32,17 @@ class TrackResult:
     c2w: torch.Tensor  # [4, 4] the pose with the lowest loss seen
     best_loss: torch.Tensor  # [] that loss (device tensor; read it at the frame boundary)
     coverage: torch.Tensor  # [] fraction of valid-depth pixels the map covered at that pose
+
+
+class Tracker(Protocol):
+    """One frame's pose against a frozen map, from camera-to-world `c2w_init` [4, 4]."""
+
+    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> TrackResult: ...
+
+
+def make_tracker(settings: TrackSettings) -> Tracker:
+    """The configured tracking method (SplaTAM's rendering loss optimised by Adam)."""
+    return partial(track, settings=settings)
 
 
 def track(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, settings: TrackSettings) -> TrackResult:
