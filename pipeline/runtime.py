@@ -25,7 +25,7 @@ from pipeline.frame import Frame
 from pipeline.source import Source
 from pipeline.stages.queues import END, Policy, StageQueue
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import SlamStep
+from pipeline.stages.slam import SlamStage
 from pipeline.stages.stage import StageStats, frame_index, transform_stage
 from pipeline.stages.upload import UploadedFrame
 from pipeline.stages.worker import dedicated_thread_stage
@@ -76,12 +76,12 @@ Service = Callable[[asyncio.Event], Coroutine[Any, Any, None]]  # runs beside th
 
 @dataclass
 class Graph:
-    """What the runtime needs: a source, the upload, the SLAM step and the sink. A live source's
-    queue keeps the newest items (drops counted); an offline one's blocks (nothing lost)."""
+    """What the runtime needs: a source, the upload, the SLAM stages and the sink. A live
+    source's queue keeps the newest items (drops counted); an offline one's blocks (nothing lost)."""
 
     source: Source
     upload: Callable[[Frame], UploadedFrame]
-    slam: SlamStep
+    slam: list[SlamStage]  # one (sequential) or tracking then mapping (overlapped)
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
@@ -96,10 +96,11 @@ class Graph:
 def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
     report = RuntimeReport(loader, len(graph.sink.results), wall, interrupted)
     report.stages = {s.name: s.summary() for s in stats}
-    report.gpu_gaps_ms = graph.slam.gpu_gaps_ms()
-    wall_ms = graph.slam.gpu_wall_ms()
+    spans = graph.slam[0].spans  # the stage that takes frames from the upload: tracking, when overlapped
+    report.gpu_gaps_ms = spans.gaps_ms()
+    wall_ms = spans.wall_ms()
     if wall_ms > 0:
-        report.gpu_busy_fraction = graph.slam.gpu_busy_ms() / wall_ms
+        report.gpu_busy_fraction = spans.busy_ms() / wall_ms
     return report
 
 
@@ -135,8 +136,10 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     frames: StageQueue[Any] = StageQueue(q)
     uploaded: StageQueue[Any] = StageQueue(q)
     results: StageQueue[Any] = StageQueue(4 * q)
+    between = [StageQueue[Any](q) for _ in graph.slam[1:]]  # tracked frames, when overlapped
     graph.queues.update(source=refs, decoded=frames, uploaded=uploaded, results=results)
-    stats = [StageStats("decode"), StageStats("upload"), StageStats("slam")]
+    graph.queues.update({f"{stage.name}_inbox": queue for stage, queue in zip(graph.slam[1:], between)})
+    stats = [StageStats("decode"), StageStats("upload")] + [StageStats(stage.name) for stage in graph.slam]
     pools = [
         ThreadPoolExecutor(graph.decode_workers, thread_name_prefix="decode"),
         ThreadPoolExecutor(1, thread_name_prefix="upload"),
@@ -149,10 +152,27 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
                 group.create_task(transform_stage("decode", graph.source.decode, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
             ]
-            slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
+            inboxes, outboxes = [uploaded, *between], [*between, results]
+            slam = [
+                group.create_task(
+                    dedicated_thread_stage(
+                        stage.name,
+                        stage.run,
+                        inbox,
+                        outbox,
+                        stage_stats,
+                        stop,
+                        in_flight=1 if stage.pass_over else 2,  # live: the newest item is chosen when it starts
+                        pass_over=stage.pass_over,
+                        finish_on_stop=stage.finish_on_stop,
+                        interrupt=stage.interrupt,
+                    )
+                )
+                for stage, inbox, outbox, stage_stats in zip(graph.slam, inboxes, outboxes, stats[2:])
+            ]
             group.create_task(graph.sink.drain(results))
-            upstream += [group.create_task(service(stop)) for service in graph.services]
-            await slam
+            upstream += slam[:-1] + [group.create_task(service(stop)) for service in graph.services]
+            await slam[-1]
             for task in upstream:
                 task.cancel()
     except* StageFailure as failures:
@@ -172,14 +192,15 @@ async def _collect(source: AsyncIterable[Any]) -> list[Any]:
 
 def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
     """The plain loop: read, decode, copy, track and map one frame after the other."""
-    stats = {name: StageStats(name) for name in ("decode", "upload", "slam")}
+    steps = [("decode", graph.source.decode), ("upload", graph.upload)] + [(s.name, s.run) for s in graph.slam]
+    stats = {name: StageStats(name) for name, _ in steps}
     items = asyncio.run(_collect(graph.source))
     start = time.perf_counter()
     for item in items:
         if stop.is_set():
             break
         value: Any = item
-        for name, fn in (("decode", graph.source.decode), ("upload", graph.upload), ("slam", graph.slam)):
+        for name, fn in steps:
             t0 = time.perf_counter()
             try:
                 with record_function(name):

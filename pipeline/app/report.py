@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from pipeline.runtime import RuntimeReport
-from pipeline.slam.splatam import FrameResult
+from pipeline.slam.results import FrameResult
 
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
@@ -101,6 +101,7 @@ def format_table(metrics: dict[str, Any]) -> str:
             + (f", {t['fps_steady']:.2f} after warm-up" if t["fps_steady"] else ""),
         ),
         ("tracking lost", f"{metrics['lost_frames']} frames"),
+        ("tracking weak", f"{metrics.get('weak_frames', 0)} frames (mapped; low map coverage)"),
     ]
     if "peak_gpu_memory_gb" in metrics:
         rows.append(("peak GPU memory", f"{metrics['peak_gpu_memory_gb']:.2f} GB"))

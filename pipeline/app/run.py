@@ -50,7 +50,7 @@ def run_slam(
     session = open_session(config, source, folder, progress=progress, resume=checkpoint, total=len(dataset))
     log.info("dataset: %s (%s, %d frames)", dataset.name, dataset.format, len(dataset))
     report = execute_session(session, profile_trace)
-    if session.slam.state.gaussians is None:
+    if session.slam.gaussians is None:
         if report.interrupted:
             log.info("interrupted before the first frame was processed: nothing to write")
             return RunResult(session.folder, None)
@@ -100,6 +100,9 @@ def _finish(session: Session, dataset: Dataset, report: RuntimeReport, progress:
         "interrupted": report.interrupted,
         "gaussians": len(saved.gaussians),
         "lost_frames": sum(bool(r.lost) for r in results),
+        "weak_frames": sum(bool(r.warning) for r in results),
+        "unmapped_frames": sum(not r.mapped for r in results),
+        "schedule": config.slam.schedule,
         "device": describe(device, config),
         "versions": versions(),
         "runtime": report.summary(),
@@ -132,16 +135,14 @@ def _ate(estimated: np.ndarray, reference: np.ndarray) -> dict[str, Any]:
 def _render_metrics(session: Session, dataset: Dataset, progress: bool) -> dict[str, Any]:
     """PSNR, SSIM and depth L1 of the final map rendered at the estimated poses, every Nth frame."""
     config, slam = session.config, session.slam
-    state = slam.state
-    assert state.gaussians is not None
+    gaussians, poses = slam.gaussians, slam.poses
+    assert gaussians is not None
     uploader = make_uploader(session.device, slots=2)
     picks = list(range(0, slam.frames_done, config.run.eval_every))
     scores = []
     for i in tqdm(picks, desc="evaluate", unit="frame", disable=not progress, dynamic_ncols=True):
         frame = uploader(dataset.decode(dataset.refs[i])).wait()
-        scores.append(
-            view_quality(slam.renderer, state.gaussians, frame, state.poses[i], config.render.near, config.render.far)
-        )
+        scores.append(view_quality(slam.renderer, gaussians, frame, poses[i], config.render.near, config.render.far))
     return {
         "psnr_db": float(np.mean([s.psnr_db for s in scores])),
         "ssim": float(np.mean([s.ssim for s in scores])),

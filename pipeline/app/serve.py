@@ -25,7 +25,7 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.status_http import serve_status
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.runtime import Graph
-from pipeline.slam.splatam import FrameResult
+from pipeline.slam.results import FrameResult
 from pipeline.source import Source
 
 log = logging.getLogger("gsplatam")
@@ -67,14 +67,23 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "dropped": source_queue.dropped if source_queue is not None else 0,
             "fps": fps,
             "gaussians": last.gaussians if last else 0,
-            "tracking": "waiting" if last is None else ("lost: " + last.lost if last.lost else "ok"),
+            "tracking": _tracking_state(last),
             "lost_frames": sink.lost_frames,
+            "unmapped_frames": sink.unmapped_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
             "ate_rmse_cm": live_ate_cm(results),
         }
 
     return read
+
+
+def _tracking_state(last: FrameResult | None) -> str:
+    if last is None:
+        return "waiting"
+    if last.lost:
+        return f"lost: {last.lost}"
+    return f"weak: {last.warning}" if last.warning else "ok"
 
 
 def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
@@ -91,7 +100,7 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
 
     report = execute_session(session, on_graph=add_status)
     slam, sink = session.slam, session.sink
-    if slam.state.gaussians is None:
+    if slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
     assert session.saver is not None
@@ -100,8 +109,9 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "source": source.name,
         "preset": config.preset,
         "frames": slam.frames_done,
-        "gaussians": len(slam.state.gaussians),
+        "gaussians": len(slam.gaussians),
         "lost_frames": sink.lost_frames,
+        "unmapped_frames": sink.unmapped_frames,
         "counters": vars(source.counters),
         "device": describe(device, config),
         "versions": versions(),

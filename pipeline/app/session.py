@@ -28,7 +28,7 @@ from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
 from pipeline.source import Source
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import FrameObserver, SlamStep
+from pipeline.stages.slam import FrameObserver, SlamStage, overlapped_stages, sequential_stages
 from pipeline.stages.upload import make_uploader
 
 log = logging.getLogger("gsplatam")
@@ -91,13 +91,21 @@ def open_session(
     return Session(config, device, run_folder, slam, source, sink, saver, viewer, services)
 
 
+def slam_stages(session: Session) -> list[SlamStage]:
+    """The SLAM stages of the configured schedule."""
+    slam, source, schedule = session.slam, session.source, session.config.slam
+    if schedule.schedule == "overlapped":
+        return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live)
+    return sequential_stages(slam, source.last_index, session.observers)
+
+
 def graph_of(session: Session) -> Graph:
     """source -> decode -> upload -> SLAM (with its observers) -> sink."""
     config = session.config
     return Graph(
         source=session.source,
         upload=make_uploader(session.device, slots=config.run.queue_size + 2),
-        slam=SlamStep(session.slam, session.source.last_index, observers=session.observers),
+        slam=slam_stages(session),
         sink=session.sink,
         queue_size=config.run.queue_size,
         services=list(session.services),

@@ -27,6 +27,8 @@ from pipeline.config.schema import (
     RenderBackend,
     RenderConfig,
     RunConfig,
+    Schedule,
+    SlamConfig,
     Switch,
     SyntheticConfig,
     TrackingConfig,
@@ -36,6 +38,6 @@ from pipeline.config.schema import (
 __all__ = [
     "DATASET_DEFAULTS", "PRESETS", "Config", "DatasetConfig", "DatasetFormat", "DensifyConfig", "GaussianConfig",
     "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MappingConfig", "PoseUse",
-    "RenderBackend", "RenderConfig", "RunConfig", "Switch", "SyntheticConfig", "TrackingConfig", "ViewerConfig",
+    "RenderBackend", "RenderConfig", "RunConfig", "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "ViewerConfig",
     "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

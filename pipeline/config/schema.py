@@ -101,6 +101,17 @@ class RenderConfig:
     far: float = 100.0
 
 
+Schedule = Literal["sequential", "overlapped"]
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """How tracking and mapping share the frames."""
+
+    schedule: Schedule = "sequential"  # overlapped: tracking and mapping as two concurrent stages
+    max_lead: int = 2  # overlapped, offline: frames tracking may run ahead of mapping (live: no bound)
+
+
 @dataclass(frozen=True)
 class RunConfig:
     output: str = "outputs"
@@ -148,6 +159,7 @@ class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    slam: SlamConfig = field(default_factory=SlamConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)

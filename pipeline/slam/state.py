@@ -1,26 +1,14 @@
-"""What SLAM carries from frame to frame, and its host copy that a checkpoint holds."""
+"""What a checkpoint holds: a host copy of everything SLAM carries from frame to frame."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
-
-
-@dataclass
-class SlamState:
-    """The live state, on the compute device."""
-
-    gaussians: Gaussians | None = None
-    keyframes: list[Keyframe] = field(default_factory=list)
-    poses: list[torch.Tensor] = field(default_factory=list)  # [4, 4] estimated camera-to-world per frame
-    scene_radius: float = 0.0  # metres
-    loss_history: list[float] = field(default_factory=list)  # per-pixel tracking loss of earlier frames
-    last_prior: torch.Tensor | None = None  # [4, 4] the last frame's device pose (camera-to-world), if it had one
 
 
 @dataclass

@@ -11,7 +11,8 @@ from torch.profiler import record_function
 
 
 class StageClock:
-    """Measures named stages; `read()` synchronises once and returns seconds per stage."""
+    """Measures named stages; `read()` waits for the stages' end events (on their stream, not the
+    whole device: other SLAM stages run on other streams) and returns seconds per stage."""
 
     def __init__(self, device: torch.device) -> None:
         self.cuda = device.type == "cuda"
@@ -33,7 +34,8 @@ class StageClock:
 
     def read(self) -> dict[str, float]:
         if self.cuda:
-            torch.cuda.synchronize()
+            for _, end in self._spans.values():
+                end.synchronize()  # type: ignore[attr-defined]  # this stream's work only: other stages run on
             times = {name: start.elapsed_time(end) / 1000.0 for name, (start, end) in self._spans.items()}  # type: ignore[attr-defined]
         else:
             times = {name: end - start for name, (start, end) in self._spans.items()}  # type: ignore[operator]

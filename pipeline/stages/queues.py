@@ -41,3 +41,10 @@ class StageQueue(Generic[T]):
 
     async def get(self) -> T | EndOfStream:
         return await self._queue.get()
+
+    def take_ready(self) -> list[T | EndOfStream]:
+        """Every item already waiting, without waiting for more."""
+        ready: list[T | EndOfStream] = []
+        while not self._queue.empty():
+            ready.append(self._queue.get_nowait())
+        return ready

@@ -9,7 +9,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pipeline.slam.splatam import FrameResult
+from pipeline.slam.results import FrameResult
 from pipeline.stages.queues import EndOfStream, StageQueue
 
 log = logging.getLogger("gsplatam")
@@ -29,6 +29,9 @@ def frame_row(result: FrameResult) -> dict[str, Any]:
         "tracking_loss": f"{result.tracking_loss:.6g}",
         "coverage": f"{result.coverage:.4f}",
         "lost": result.lost,
+        "warning": result.warning,
+        "mapped": int(result.mapped),
+        "map_version": result.map_version,
     }
 
 
@@ -44,6 +47,8 @@ class ResultSink:
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
+        self.weak_frames = 0  # tracked with a warning (low map coverage), still mapped
+        self.unmapped_frames = 0  # tracked but not mapped: lost, or skipped by a live session's mapping
         self.bar = tqdm(
             total=total, initial=initial, unit="frame", desc="SLAM", disable=not progress, dynamic_ncols=True
         )
@@ -55,6 +60,12 @@ class ResultSink:
         if result.lost:
             self.lost_frames += 1
             log.warning("frame %d: tracking lost: %s", result.index, result.lost)
+        elif result.warning:
+            self.weak_frames += 1
+            previous = self.results[-2] if len(self.results) > 1 else None
+            if previous is None or not previous.warning:  # said once per run of weak frames
+                log.info("frame %d: tracking weak: %s", result.index, result.warning)
+        self.unmapped_frames += not result.mapped
         self.bar.set_postfix(gaussians=result.gaussians, ms=f"{1000 * result.seconds['total']:.0f}", refresh=False)
         self.bar.update(1)
 

@@ -1,64 +1,141 @@
-"""The SLAM stage: one SplaTAM step per frame on the compute stream, with GPU gap timing."""
+"""The SLAM stages: SplaTAM per frame in one thread (the sequential schedule), or tracking and
+mapping in two threads with their own CUDA streams (the overlapped schedule).
+
+Observers run after each frame in the thread that finished it, at the one moment the published
+map and the poses up to that frame are consistent (periodic saves, viewer snapshots); they must
+be quick.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextlib
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch.profiler import record_function
 
 from pipeline.frame import DeviceFrame
-from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.slam.frontend import TrackedFrame
+from pipeline.slam.results import FrameResult
+from pipeline.slam.splatam import SplaTAM
+from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.upload import UploadedFrame
 
 FrameObserver = Callable[[SplaTAM, DeviceFrame, FrameResult], None]
 
 
-class SlamStep:
-    """Callable run in the SLAM worker thread. On CUDA it brackets every frame with events on
-    the compute stream, so the idle time between one frame's GPU work and the next is measured
-    on the GPU's own clock. `observers` run after each frame, in this thread, at the one moment
-    the map is not being changed (periodic saves, viewer snapshots); they must be quick."""
+@dataclass
+class SlamStage:
+    """One SLAM stage for the runtime: its function, run in a thread of its own, and how it
+    takes its inbox. `pass_over`: a live stage's treatment of the items it does not process
+    because a newer one is waiting (None: every item is processed). `finish_on_stop`: after a
+    stop, process what is already in the inbox (mapping finishes the frames tracked)."""
 
-    def __init__(self, slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver] = ()) -> None:
-        self.slam = slam
-        self.last_index = last_index
-        self.observers = list(observers)
-        self.cuda = slam.device.type == "cuda"
-        self._events: list[tuple[torch.cuda.Event, torch.cuda.Event]] = []
+    name: str
+    run: Callable[[Any], Any]
+    spans: GpuSpans
+    pass_over: Callable[[Any], Any] | None = None
+    finish_on_stop: bool = False
+    interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
 
-    def __call__(self, uploaded: UploadedFrame) -> FrameResult:
-        with record_function("slam_step"):
-            if self.cuda:
-                torch.cuda.set_device(self.slam.device)
-                start = torch.cuda.Event(enable_timing=True)
-                start.record()
+
+@contextlib.contextmanager
+def _on_stream(stream: torch.cuda.Stream | None) -> Iterator[None]:
+    if stream is None:
+        yield
+        return
+    with torch.cuda.stream(stream):
+        yield
+
+
+def _stream_for(slam: SplaTAM) -> torch.cuda.Stream | None:
+    return torch.cuda.Stream(slam.device) if slam.device.type == "cuda" else None
+
+
+class LeadGate:
+    """Tracking waits here before each frame: for the first map (tracking needs one), and
+    offline for mapping to be at most `max_lead` frames behind (None: no bound, live)."""
+
+    def __init__(self, max_lead: int | None) -> None:
+        self.max_lead = max_lead
+        self._tracked = 0
+        self._passed = 0
+        self._open = threading.Event()  # set when the graph stops: nothing waits any more
+        self._changed = threading.Condition()
+
+    def enter(self) -> None:
+        with self._changed:
+            self._changed.wait_for(self._room)
+            self._tracked += 1
+
+    def _room(self) -> bool:
+        if self._open.is_set() or self._tracked == 0:
+            return True
+        if self._passed == 0:
+            return False  # the first frame makes the map that tracking needs
+        return self.max_lead is None or self._tracked - self._passed <= self.max_lead
+
+    def passed(self) -> None:
+        with self._changed:
+            self._passed += 1
+            self._changed.notify_all()
+
+    def open(self) -> None:
+        with self._changed:
+            self._open.set()
+            self._changed.notify_all()
+
+
+def sequential_stages(slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver]) -> list[SlamStage]:
+    """Track and map each frame in one thread, on the thread's current stream."""
+    spans = GpuSpans(slam.device)
+
+    def step(uploaded: UploadedFrame) -> FrameResult:
+        with record_function("slam_step"), spans.frame():
             frame = uploaded.wait()
-            result = self.slam.step(frame, is_last=frame.index == self.last_index)
-            if self.cuda:
-                end = torch.cuda.Event(enable_timing=True)
-                end.record()
-                self._events.append((start, end))
-            for observe in self.observers:
-                observe(self.slam, frame, result)
+            result = slam.step(frame, is_last=frame.index == last_index)
+        for observe in observers:
+            observe(slam, frame, result)
         return result
 
-    def gpu_gaps_ms(self) -> list[float]:
-        """Idle time on the compute stream between consecutive frames, milliseconds."""
-        if not self._events:
-            return []
-        torch.cuda.synchronize()
-        return [prev_end.elapsed_time(start) for (_, prev_end), (start, _) in zip(self._events, self._events[1:])]
+    return [SlamStage("slam", step, spans)]
 
-    def gpu_busy_ms(self) -> float:
-        """Sum of the spans from each frame's start event to its end event."""
-        if not self._events:
-            return 0.0
-        torch.cuda.synchronize()
-        return sum(start.elapsed_time(end) for start, end in self._events)
 
-    def gpu_wall_ms(self) -> float:
-        if not self._events:
-            return 0.0
-        torch.cuda.synchronize()
-        return self._events[0][0].elapsed_time(self._events[-1][1])
+def overlapped_stages(
+    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], max_lead: int, live: bool
+) -> list[SlamStage]:
+    """Tracking and mapping in two threads and two CUDA streams. Offline, tracking runs at most
+    `max_lead` frames ahead of mapping; live, it never waits for mapping, and mapping takes the
+    newest tracked frame, passing the older ones on unmapped."""
+    gate = LeadGate(None if live else max_lead)
+    track_spans, map_spans = GpuSpans(slam.device), GpuSpans(slam.device)
+    track_stream, map_stream = _stream_for(slam), _stream_for(slam)
+
+    def track(uploaded: UploadedFrame) -> TrackedFrame:
+        gate.enter()
+        with record_function("tracking_stage"), _on_stream(track_stream), track_spans.frame():
+            return slam.frontend.track(uploaded.wait(), slam.backend.latest)
+
+    def finish(tracked: TrackedFrame, result: FrameResult) -> FrameResult:
+        gate.passed()
+        for observe in observers:
+            observe(slam, tracked.frame, result)
+        return result
+
+    def map_frame(tracked: TrackedFrame) -> FrameResult:
+        with record_function("mapping_stage"), _on_stream(map_stream):
+            with map_spans.frame():
+                result = slam.backend.map(tracked, is_last=tracked.frame.index == last_index)
+            return finish(tracked, result)
+
+    def skip(tracked: TrackedFrame) -> FrameResult:
+        with _on_stream(map_stream):
+            return finish(tracked, slam.backend.skip(tracked))
+
+    return [
+        SlamStage("tracking", track, track_spans, interrupt=gate.open),
+        SlamStage("mapping", map_frame, map_spans, pass_over=skip if live else None, finish_on_stop=True),
+    ]

@@ -30,10 +30,16 @@ async def dedicated_thread_stage(
     stats: StageStats,
     stop: asyncio.Event,
     in_flight: int = 2,
+    pass_over: Callable[[Any], Any] | None = None,
+    finish_on_stop: bool = False,
+    interrupt: Callable[[], None] | None = None,
 ) -> None:
     """Apply `fn` to every item in order in a thread of its own. At most `in_flight` items are
     handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
-    thread finishes the item in hand and takes no other."""
+    thread finishes the item in hand and takes no other, unless `finish_on_stop` (then it goes
+    on to the inbox's end). With `pass_over`, of the items waiting in the inbox only the newest
+    goes to `fn`; the older ones go, in order, to `pass_over`. `interrupt` is called when the
+    stage ends, to unblock an `fn` that waits for another stage."""
     loop = asyncio.get_running_loop()
     handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
     finished: asyncio.Queue[Any] = asyncio.Queue()
@@ -43,43 +49,62 @@ async def dedicated_thread_stage(
     def post(value: Any) -> None:
         loop.call_soon_threadsafe(finished.put_nowait, value)
 
+    def run_batch(batch: list[Any]) -> list[Any]:
+        """The newest item through `fn`, the older ones (if any) through `pass_over`, in order."""
+        results = []
+        for item in batch[:-1]:
+            assert pass_over is not None
+            results.append(pass_over(item))
+        start = time.perf_counter()
+        results.append(fn(batch[-1]))
+        stats.record(time.perf_counter() - start)
+        return results
+
     def work() -> None:
-        while not isinstance(item := handoff.get(), EndOfStream) and not halted.is_set():
-            start = time.perf_counter()
+        while not isinstance(batch := handoff.get(), EndOfStream) and not halted.is_set():
             try:
-                result = fn(item)
+                post(run_batch(batch))
             except BaseException as exc:  # reported on the loop, which stops the graph
-                post(StageFailure(name, frame_index(item), exc))
+                post(StageFailure(name, frame_index(batch[-1]), exc))
                 return
-            stats.record(time.perf_counter() - start)
-            post(result)
         post(END)
 
+    def stopping() -> bool:
+        return stop.is_set() and not finish_on_stop
+
     async def feed() -> None:
+        """Hand over one batch per free slot: the next item, and with `pass_over` every item
+        waiting behind it, so that the newest is the one processed."""
         while True:
-            item = await inbox.get()
-            if stop.is_set():
-                item = END
-            if isinstance(item, EndOfStream):
-                handoff.put(item)
-                return
             await slots.acquire()
-            handoff.put(item)
+            waiting = [await inbox.get()]
+            if pass_over is not None:
+                waiting += inbox.take_ready()
+            ends = isinstance(waiting[-1], EndOfStream)  # END comes last, if at all
+            batch = waiting[:-1] if ends else waiting
+            if batch and not stopping():
+                handoff.put(batch)
+            if ends or stopping():
+                handoff.put(END)
+                return
 
     thread = threading.Thread(target=work, name=f"{name}-worker", daemon=True)
     thread.start()
     feeder = asyncio.create_task(feed())
     try:
-        while not isinstance(result := await finished.get(), EndOfStream):
-            if isinstance(result, StageFailure):
-                raise result
-            await outbox.put(result)
+        while not isinstance(results := await finished.get(), EndOfStream):
+            if isinstance(results, StageFailure):
+                raise results
+            for result in results:
+                await outbox.put(result)
             slots.release()
-            if stop.is_set():
+            if stopping():
                 halted.set()
     finally:
         feeder.cancel()
         halted.set()
+        if interrupt is not None:
+            interrupt()
         handoff.put(END)  # wakes the worker if it waits for an item
         await asyncio.to_thread(thread.join)
     await outbox.put(END)

@@ -6,11 +6,14 @@ import time
 from dataclasses import dataclass
 
 import pytest
+import torch
 
 from pipeline.errors import StageFailure
 from pipeline.runtime import Graph, run_graph, run_sync
 from pipeline.source import SourceCounters
+from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.queues import END, EndOfStream, StageQueue
+from pipeline.stages.slam import SlamStage
 
 
 @dataclass
@@ -51,15 +54,6 @@ class FakeSlam:
         self.seen.append(item.index)
         return item
 
-    def gpu_gaps_ms(self) -> list[float]:
-        return []
-
-    def gpu_busy_ms(self) -> float:
-        return 0.0
-
-    def gpu_wall_ms(self) -> float:
-        return 0.0
-
 
 class CollectSink:
     def __init__(self) -> None:
@@ -79,7 +73,8 @@ def jittery(item: Item) -> Item:
 
 
 def graph(n: int, slam: FakeSlam, decode=jittery, queue_size: int = 3) -> Graph:
-    return Graph(ListSource(n, decode), jittery, slam, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
+    stages = [SlamStage("slam", slam, GpuSpans(torch.device("cpu")))]
+    return Graph(ListSource(n, decode), jittery, stages, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
 
 
 def run(g: Graph, stop: asyncio.Event | None = None, timeout: float = 30.0):

@@ -39,7 +39,7 @@ def test_first_frame_initialisation_reproduces_the_input(replica_seq) -> None:
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
     result = slam.step(frame)
     assert result.gaussians == int((frame.depth > 0).sum()) and result.added == result.gaussians
-    out = slam.renderer(slam.state.gaussians, Camera(torch.eye(4), frame.intrinsics, frame.width, frame.height))
+    out = slam.renderer(slam.gaussians, Camera(torch.eye(4), frame.intrinsics, frame.width, frame.height))
     valid = frame.depth > 0
     # One-pixel Gaussians blur edges (expected depth mixes foreground and background there),
     # so judge the typical pixel: the median depth error and the colour PSNR.
@@ -207,8 +207,8 @@ def test_slam_state_survives_a_checkpoint(replica_seq, tmp_path) -> None:
     fresh.restore(saved)
     for f in frames[2:4]:
         fresh.step(f)
-    torch.testing.assert_close(torch.stack(fresh.state.poses), torch.stack(straight.state.poses))
-    torch.testing.assert_close(fresh.state.gaussians.means, straight.state.gaussians.means)
+    torch.testing.assert_close(torch.stack(fresh.poses), torch.stack(straight.poses))
+    torch.testing.assert_close(fresh.gaussians.means, straight.gaussians.means)
     assert SMALL_SYNTH.frames >= 4
 
 

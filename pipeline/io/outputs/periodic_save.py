@@ -10,7 +10,8 @@ import numpy as np
 
 from pipeline.frame import DeviceFrame
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.slam.results import FrameResult
+from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
 
 log = logging.getLogger("gsplatam")

@@ -27,7 +27,8 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer import FrameView, MapView, Viewer, colorize_depth
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
-from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.slam.results import FrameResult
+from pipeline.slam.splatam import SplaTAM
 
 log = logging.getLogger("gsplatam")
 
@@ -100,19 +101,19 @@ class ViewerFeed:
         self._previous_frame_at = now
         while not self.viewer.running.wait(0.2) and not self.released.is_set():
             pass  # paused from the browser
-        if self.viewer.save_requested.is_set() and slam.state.gaussians is not None:
+        if self.viewer.save_requested.is_set() and slam.gaussians is not None:
             self.viewer.save_requested.clear()
-            host = copied(slam.state.gaussians, "cpu")
+            host = copied(slam.gaussians, "cpu")
             threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
-        if now - self._last < self.period_s or self._handoff.full() or slam.state.gaussians is None:
+        if now - self._last < self.period_s or self._handoff.full() or slam.gaussians is None:
             return
         if not self.viewer.clients():
             return  # nobody is watching: no snapshot
         self._last = now
         cuda = frame.depth.is_cuda
         snapshot = Snapshot(
-            gaussians=copied(slam.state.gaussians),
-            poses=torch.stack(slam.state.poses),
+            gaussians=copied(slam.gaussians),
+            poses=torch.stack(slam.poses),
             frame=frame,
             result=result,
             fps=self._fps,

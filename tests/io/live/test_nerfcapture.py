@@ -31,7 +31,7 @@ from pipeline.io.live.nerfcapture import (
     opencv_to_arkit,
     sample_from_frame,
 )
-from pipeline.slam.splatam import FrameResult
+from pipeline.slam.results import FrameResult
 
 
 @pytest.fixture(scope="module")

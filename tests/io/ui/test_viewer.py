@@ -26,7 +26,7 @@ from pipeline.geometry import quat_to_rotmat
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, map_view
 from pipeline.render import Gaussians
-from pipeline.slam.splatam import FrameResult
+from pipeline.slam.results import FrameResult
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 ARTIFACTS = Path(os.environ.get("GSPLATAM_TEST_ARTIFACTS", ROOT / "test-artifacts"))
@@ -70,8 +70,11 @@ class FakeViewer:
 
 
 class FakeSlam:
+    """What the feed reads of SLAM: the published map and the poses."""
+
     def __init__(self, gaussians: Gaussians) -> None:
-        self.state = type("State", (), {"gaussians": gaussians, "poses": [torch.eye(4)]})()
+        self.gaussians = gaussians
+        self.poses = [torch.eye(4)]
 
 
 def _frame(index: int) -> DeviceFrame:
@@ -107,7 +110,7 @@ def test_the_feed_is_rate_limited_and_shows_what_slam_had(slam_like: FakeSlam, t
     deadline = time.monotonic() + 10
     while not viewer.frames and time.monotonic() < deadline:
         time.sleep(0.01)
-    slam_like.state.gaussians.means.add_(1.0)  # SLAM moves on; the snapshot must not change
+    slam_like.gaussians.means.add_(1.0)  # SLAM moves on; the snapshot must not change
     feed.close()
     assert len(viewer.maps) == 1 and viewer.frames[0].index == 0
     assert viewer.maps[0].centers[:, 2].max() < 3.0

@@ -1,0 +1,136 @@
+"""SLAM's mapping side: densify, select keyframes, optimise the map, publish a map version.
+
+It holds the map, the keyframes and the random state of mapping, and takes tracked frames in
+order. A frame whose tracking was judged lost is never mapped; a live session may also skip
+frames when mapping falls behind (`skip`): both are passed on with their poses, unmapped.
+"""
+
+from __future__ import annotations
+
+import random
+
+import torch
+
+from pipeline.config import Config
+from pipeline.frame import DeviceFrame
+from pipeline.geometry import invert_pose
+from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.densify import densify_mask
+from pipeline.slam.frontend import TrackedFrame, TrackerMark
+from pipeline.slam.gaussian_map import concatenate, seed_gaussians
+from pipeline.slam.keyframes import Keyframe, select_window
+from pipeline.slam.map_version import MapVersion
+from pipeline.slam.mapping import MapSettings, map_window
+from pipeline.slam.results import FrameResult
+from pipeline.slam.timing import StageClock
+
+
+class MappingBackend:
+    def __init__(self, config: Config, renderer: Renderer, settings: MapSettings, device: torch.device) -> None:
+        self.config = config
+        self.renderer = renderer
+        self.settings = settings
+        self.device = device
+        self.gaussians: Gaussians | None = None
+        self.keyframes: list[Keyframe] = []
+        self.scene_radius = 0.0  # metres
+        self.rng = random.Random(config.run.seed)  # mapping's view picks
+        self.generator = torch.Generator().manual_seed(config.run.seed)  # keyframe overlap samples
+        self.frames_seen = 0  # frames passed to this side, mapped or not
+        self.last_keyframe_seen = -config.keyframes.every  # frames_seen when the last keyframe was taken
+        self.latest: MapVersion | None = None
+        self.mark: TrackerMark | None = None  # the tracking side's state as of the last frame seen
+        self.clock = StageClock(device)
+
+    def map(self, tracked: TrackedFrame, is_last: bool = False) -> FrameResult:
+        """Densify, select the window and optimise the map with the tracked frame; publish the
+        new version. A frame judged lost is skipped instead."""
+        if tracked.result.lost:
+            return self.skip(tracked)
+        frame, c2w = tracked.frame, tracked.c2w
+        if tracked.ready is not None:
+            torch.cuda.current_stream().wait_event(tracked.ready)
+            for tensor in (frame.color, frame.depth, frame.intrinsics, c2w):
+                tensor.record_stream(torch.cuda.current_stream())
+        with self.clock.stage("densify"):
+            if self.gaussians is None:
+                added = self._initialise(frame, c2w)
+                window: list[Keyframe] = []
+            else:
+                added = self._densify(frame, c2w)
+                window = self._window(frame, c2w)
+        current = Keyframe.of(frame.index, frame.color, frame.depth, c2w)
+        with self.clock.stage("mapping"):
+            self._map(window + [current], frame.intrinsics)
+        if self.frames_seen - self.last_keyframe_seen >= self.config.keyframes.every or is_last:
+            self.keyframes.append(current)
+            self.last_keyframe_seen = self.frames_seen
+        self.publish()
+        seconds = self.clock.read()
+        return self._passed(tracked, added, seconds.get("densify", 0.0), seconds.get("mapping", 0.0), mapped=True)
+
+    def skip(self, tracked: TrackedFrame) -> FrameResult:
+        """Pass a tracked frame on without mapping it."""
+        return self._passed(tracked, 0, 0.0, 0.0, mapped=False)
+
+    def _passed(
+        self, tracked: TrackedFrame, added: int, densify_s: float, mapping_s: float, mapped: bool
+    ) -> FrameResult:
+        self.frames_seen += 1
+        self.mark = tracked.mark
+        result = tracked.result
+        result.seconds.update(densify=densify_s, mapping=mapping_s)
+        result.seconds["total"] = result.seconds.get("tracking", 0.0) + densify_s + mapping_s
+        result.added = added
+        result.gaussians = 0 if self.gaussians is None else len(self.gaussians)
+        result.mapped = mapped
+        result.map_version = 0 if self.latest is None else self.latest.number
+        return result
+
+    def publish(self) -> None:
+        """Make the current map the latest version tracking reads."""
+        assert self.gaussians is not None
+        ready = None
+        if self.device.type == "cuda":
+            ready = torch.cuda.Event()
+            ready.record()
+        number = 1 if self.latest is None else self.latest.number + 1
+        self.latest = MapVersion(number, self.gaussians, ready)
+
+    def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
+        """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""
+        valid = frame.depth > 0
+        self.gaussians = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, valid, self.config.gaussians)
+        self.scene_radius = float(frame.depth.max()) / self.config.mapping.scene_radius_divisor
+        return len(self.gaussians)
+
+    def _densify(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
+        """Add Gaussians where the map at the tracked pose misses the frame; -> Gaussians added."""
+        assert self.gaussians is not None
+        render = self.config.render
+        camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, render.near, render.far)
+        with torch.no_grad():
+            out = self.renderer(self.gaussians, camera)
+            mask = densify_mask(out.silhouette, out.depth, frame.depth, self.config.densify)
+            seeds = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, mask, self.config.gaussians)
+        self.gaussians = concatenate(self.gaussians, seeds)
+        return len(seeds)
+
+    def _window(self, frame: DeviceFrame, c2w: torch.Tensor) -> list[Keyframe]:
+        """The keyframes mapped with the current frame: overlapping ones and the newest."""
+        picks = select_window(
+            self.keyframes,
+            frame.depth,
+            frame.intrinsics,
+            c2w,
+            window=self.config.mapping.window,
+            samples=self.config.keyframes.overlap_samples,
+            generator=self.generator,
+        )
+        return [self.keyframes[i] for i in picks]
+
+    def _map(self, views: list[Keyframe], intrinsics: torch.Tensor) -> None:
+        assert self.gaussians is not None
+        if self.config.mapping.iters == 0:
+            return
+        self.gaussians = map_window(self.gaussians, views, intrinsics, self.scene_radius, self.rng, self.settings)

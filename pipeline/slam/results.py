@@ -1,0 +1,24 @@
+"""The per-frame result SLAM reports: what frames.csv, the status endpoint and metrics read."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class FrameResult:
+    index: int
+    timestamp: float
+    c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the host
+    seconds: dict[str, float]  # tracking, densify (with keyframe selection), mapping, total (their sum)
+    gaussians: int  # in the map after this frame's mapping (or the latest map, when not mapped)
+    added: int
+    tracking_loss: float  # per tracked pixel at the chosen pose
+    coverage: float  # fraction of valid-depth pixels used by tracking
+    lost: str = ""  # why the pose is not to be trusted (the frame is then not mapped); empty when it is
+    c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
+    warning: str = ""  # why tracking looked weak though its pose is used and mapped (low map coverage)
+    mapped: bool = True  # False: tracked only (lost, or skipped by a live session's mapping)
+    map_version: int = 0  # the map version published after this frame (the latest one when not mapped)

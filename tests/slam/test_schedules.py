@@ -1,0 +1,169 @@
+"""The two SLAM schedules: sequential (one thread, today's results) and overlapped (tracking and
+mapping as concurrent stages)."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import os
+import signal
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT
+
+from pipeline.app.cli import main
+from pipeline.app.run import run_slam
+from pipeline.config import DatasetConfig, load_config, with_dataset_defaults, with_value
+from pipeline.io.datasets.loader import open_dataset
+from pipeline.io.datasets.source import DatasetSource
+from pipeline.io.outputs.checkpoint import read_checkpoint
+from pipeline.io.trajectory import read_tum_trajectory
+from pipeline.render import Gaussians, make_renderer
+from pipeline.runtime import Graph, run_graph
+from pipeline.slam.splatam import SplaTAM
+from pipeline.stages.sinks import ResultSink
+from pipeline.stages.slam import overlapped_stages, sequential_stages
+from pipeline.stages.upload import HostUploader, host_frame_tensors
+
+CPU = torch.device("cpu")
+REFERENCE = ROOT / "tests" / "data" / "sequential_reference.json"
+FAST = ["tracking.iters=3", "mapping.iters=3"]
+
+
+def _checksum(gaussians: Gaussians) -> str:
+    digest = hashlib.sha256()
+    for tensor in (gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.colors):
+        digest.update(tensor.detach().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def _slam(overrides: list[str]) -> SplaTAM:
+    config = with_dataset_defaults(load_config("tiny", overrides=overrides), "replica")
+    return SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+
+
+def _run_graph(slam: SplaTAM, source: DatasetSource, overlapped: bool, live: bool = False) -> ResultSink:
+    sink = ResultSink(lambda rows: None, total=None, progress=False)
+    last = source.last_index
+    stages = overlapped_stages(slam, last, [], 1, live) if overlapped else sequential_stages(slam, last, [])
+    asyncio.run(run_graph(Graph(source, HostUploader(), stages, sink, queue_size=8), asyncio.Event()))
+    return sink
+
+
+@pytest.mark.slow
+def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(replica_seq: Path) -> None:
+    """The sequential schedule is SplaTAM.step frame after frame, bit for bit; and it reproduces
+    the run recorded before tracking and mapping were split (tests/data/sequential_reference.json,
+    same settings; bit for bit on the machine that recorded it, compared here to 1e-6 since
+    another CPU may round differently)."""
+    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
+    plain = _slam([])
+    for frame in dataset.frames():
+        plain.step(host_frame_tensors(frame))
+    staged = _slam([])
+    sink = _run_graph(staged, DatasetSource(dataset), overlapped=False)
+    assert [r.index for r in sink.results] == list(range(len(dataset)))
+    assert torch.equal(torch.stack(staged.poses), torch.stack(plain.poses))
+    assert staged.gaussians is not None and plain.gaussians is not None
+    assert _checksum(staged.gaussians) == _checksum(plain.gaussians)
+
+    recorded = json.loads(REFERENCE.read_text())
+    np.testing.assert_allclose(torch.stack(plain.poses).numpy(), np.array(recorded["poses_c2w"]), atol=1e-6)
+    assert len(plain.gaussians) == recorded["gaussians"]
+    for name, total in recorded["sums"].items():
+        assert float(getattr(plain.gaussians, name).double().sum()) == pytest.approx(total, rel=1e-5, abs=1e-5)
+
+
+@pytest.mark.slow
+def test_overlapped_tracks_against_published_versions_that_never_change(replica_seq: Path) -> None:
+    """One pose per frame; every map version tracking reads is unchanged across its tracking step
+    (checksums before and after); the versions tracking reads never decrease."""
+    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
+    slam = _slam(FAST)
+    track = slam.frontend.tracker
+    seen: list[tuple[int, str, str]] = []
+
+    def checked(gaussians: Gaussians, frame, c2w_init):  # type: ignore[no-untyped-def]
+        latest = slam.backend.latest
+        assert latest is not None and latest.gaussians is gaussians
+        before = _checksum(gaussians)
+        result = track(gaussians, frame, c2w_init)
+        seen.append((latest.number, before, _checksum(gaussians)))
+        return result
+
+    slam.frontend.tracker = checked
+    sink = _run_graph(slam, DatasetSource(dataset), overlapped=True)
+    assert [r.index for r in sink.results] == list(range(len(dataset)))
+    assert len(slam.poses) == len(dataset) and len(seen) == len(dataset) - 1
+    assert all(before == after for _, before, after in seen)
+    versions = [number for number, _, _ in seen]
+    assert versions == sorted(versions) and versions[0] >= 1
+    published = [r.map_version for r in sink.results]
+    assert published == sorted(published) and published[-1] == len(dataset)
+
+
+@pytest.mark.slow
+def test_overlapped_live_maps_the_newest_frame_and_passes_the_rest_on(replica_seq: Path) -> None:
+    """A live session never waits for mapping: while mapping is held on frame 1 until tracking
+    has tracked every frame, the frames tracked meanwhile are passed on unmapped (with their
+    poses), the newest is mapped next, and every frame keeps its result."""
+    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
+    slam = _slam(FAST)
+    all_tracked = threading.Event()
+    track, map_frame = slam.frontend.track, slam.backend.map
+
+    def tracking(frame, latest):  # type: ignore[no-untyped-def]
+        tracked = track(frame, latest)
+        if frame.index == len(dataset) - 1:
+            all_tracked.set()
+        return tracked
+
+    def mapping(tracked, is_last=False):  # type: ignore[no-untyped-def]
+        if tracked.frame.index == 1:
+            assert all_tracked.wait(timeout=120)
+        return map_frame(tracked, is_last)
+
+    slam.frontend.track, slam.backend.map = tracking, mapping  # type: ignore[method-assign]
+    source = DatasetSource(dataset)
+    source.live = True  # type: ignore[misc]
+    sink = _run_graph(slam, source, overlapped=True, live=True)
+    results = sink.results
+    assert [r.index for r in results] == list(range(len(dataset))) and len(slam.poses) == len(dataset)
+    assert [r.mapped for r in results] == [True, True, False, False, False, True]
+    assert sink.unmapped_frames == 3 and results[-1].map_version == 3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_after", [1, 2])
+def test_stopping_an_overlapped_run_leaves_a_complete_resumable_folder(
+    replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stop_after: int
+) -> None:
+    consume = ResultSink.consume
+
+    def consume_then_stop(self: ResultSink, result) -> None:  # type: ignore[no-untyped-def]
+        consume(self, result)
+        if len(self.results) == stop_after:
+            os.kill(os.getpid(), signal.SIGINT)  # as Ctrl-C: the runtime's handler stops the graph
+
+    monkeypatch.setattr(ResultSink, "consume", consume_then_stop)
+    config = load_config("tiny", overrides=FAST + ["slam.schedule=overlapped", f"dataset.path={replica_seq}"])
+    config = with_value(with_value(config, "run.output", str(tmp_path)), "run.name", "r")
+    result = run_slam(config, progress=False)
+    assert result.metrics is not None and result.metrics["interrupted"]
+    folder = result.folder.path
+    saved, _ = read_checkpoint(folder / "checkpoint.safetensors")
+    frames = result.metrics["frames"]
+    assert stop_after <= frames < len(open_dataset(DatasetConfig(path=str(replica_seq))))
+    assert saved.frames_done == frames == len(read_tum_trajectory(folder / "trajectory.txt")[0])
+    assert len((folder / "frames.csv").read_text().splitlines()) == 1 + frames
+
+    monkeypatch.setattr(ResultSink, "consume", consume)
+    assert main(["run", "--resume", str(folder), "--quiet", "--device", "cpu"]) == 0
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["frames"] == 6 and metrics["frames_this_run"] == 6 - frames and not metrics["interrupted"]
+    assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 6
