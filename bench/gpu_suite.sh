@@ -38,6 +38,12 @@ for part in "$@"; do
     syncs) python3 bench/sync_points.py --out "$out" --preset tiny --frames 30 2>&1 | grep -v Warning | tail -n 40 ;;
     costs) python3 bench/iteration_costs.py --out "$out" 2>&1 | grep -v "^gsplatam" | tail -n 45 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
+    schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
+    mapping) bench synthetic --presets tiny --variants default,views2,views3,selective-adam --stem mapping_options ;;
+    profile-overlap) python3 -m pipeline run --preset tiny --profile --quiet --output /tmp/profile --name overlapped \
+                       --set synthetic.frames=60 --set slam.schedule=overlapped 2>&1 | tail -n 3
+                     cp /tmp/profile/overlapped/profile.txt "$out/profile_tiny_overlapped.txt"
+                     cp /tmp/profile/overlapped/metrics.json "$out/profile_tiny_overlapped.json" ;;
     tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;

@@ -6,6 +6,7 @@ always what a user would get.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 from dataclasses import dataclass
@@ -31,6 +32,11 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "3d-anisotropic": ("gaussians.isotropic=false",),
     "2d-isotropic": ("gaussians.kind=2d",),
     "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),
+    "overlapped": ("slam.schedule=overlapped",),
+    "sequential": ("slam.schedule=sequential",),
+    "views2": ("mapping.views_per_step=2",),
+    "views3": ("mapping.views_per_step=3",),
+    "selective-adam": ("mapping.optimizer=selective_adam",),
 }
 
 
@@ -49,6 +55,7 @@ class Cell:
     sequence: str  # a dataset folder, or a name in SYNTHETIC_SEQUENCES
     preset: str
     variant: str = "default"
+    repeat: int = 0  # the same cell run again, for the run-to-run spread
 
 
 def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
@@ -67,6 +74,7 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
         "sequence": metrics["dataset"],
         "preset": cell.preset,
         "variant": cell.variant,
+        "repeat": cell.repeat,
         "frames": metrics["frames"],
         "tracking_ms": 1000 * t["tracking_s"],
         "densify_ms": 1000 * t["densify_s"],
@@ -85,16 +93,17 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
         "ssim": render.get("ssim"),
         "depth_l1_cm": render.get("depth_l1_cm"),
         "lost_frames": metrics["lost_frames"],
+        "unmapped_frames": metrics.get("unmapped_frames"),
         "warmup_frames_excluded": t["warmup_frames_excluded"],
     }
 
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
     """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
-    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default"}
+    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default" and r["repeat"] == 0}
     for row in rows:
         base = defaults.get((row["sequence"], row["preset"]))
-        for key in ("total_ms", "ate_rmse_cm", "psnr_db"):
+        for key in ("total_ms", "fps_steady", "ate_rmse_cm", "psnr_db"):
             ok = base is not None and row[key] is not None and base[key]
             row[f"{key}_ratio"] = row[key] / base[key] if base is not None and ok else None
 
@@ -107,14 +116,15 @@ def run_matrix(
     runs: Path,
     progress: bool,
     profile: bool = False,
+    repeats: int = 1,
 ) -> dict[str, Any]:
-    """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
+    """Run every cell `repeats` times; run folders (and the generated synthetic room) go under `runs`."""
     rows = []
     for sequence in sequences:
         for preset in presets:
-            for variant in variants:
-                cell = Cell(sequence, preset, variant)
-                name = f"{Path(sequence).name}_{preset}_{variant}"
+            for variant, repeat in itertools.product(variants, range(repeats)):
+                cell = Cell(sequence, preset, variant, repeat)
+                name = f"{Path(sequence).name}_{preset}_{variant}" + (f"_{repeat}" if repeat else "")
                 log.info("bench: %s", name)
                 config = cell_config(cell, base_overrides, runs, name)
                 metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
@@ -148,11 +158,11 @@ def _driver_version(device: torch.device) -> str | None:
 
 
 COLUMNS = [
-    ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("frames", "{}"),
+    ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("repeat", "{}"), ("frames", "{}"),
     ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
-    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("gpu_busy", "{:.3f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
-    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"),
+    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
 ]  # fmt: skip
 
 

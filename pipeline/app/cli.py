@@ -86,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--stem", default="bench", help="file name stem of the JSON and table")
     bench.add_argument("--runs", default="outputs/bench", help="where the run folders go")
     bench.add_argument("--profile", action="store_true", help="profile every cell (trace and summary per run folder)")
+    bench.add_argument("--repeats", type=int, default=1, help="run every cell this many times (run-to-run spread)")
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
@@ -203,6 +204,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if unknown:
         raise UserError(f"unknown variant '{unknown[0]}' (choose from {', '.join(ABLATIONS)})")
     presets = args.presets.split(",")
+    if args.repeats < 1:
+        raise UserError("--repeats must be at least 1")
     for preset in presets:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
     out = Path(args.out)
@@ -214,6 +217,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         Path(args.runs),
         not args.quiet,
         args.profile,
+        args.repeats,
     )
     json_path, md_path = write_report(report, out, args.stem)
     print(markdown(report))

@@ -22,6 +22,7 @@ from pipeline.config.schema import (
     LiveConfig,
     LoaderKind,
     LossConfig,
+    MapOptimizerKind,
     MappingConfig,
     PoseUse,
     RenderBackend,
@@ -37,7 +38,7 @@ from pipeline.config.schema import (
 
 __all__ = [
     "DATASET_DEFAULTS", "PRESETS", "Config", "DatasetConfig", "DatasetFormat", "DensifyConfig", "GaussianConfig",
-    "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MappingConfig", "PoseUse",
+    "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse",
     "RenderBackend", "RenderConfig", "RunConfig", "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "ViewerConfig",
     "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

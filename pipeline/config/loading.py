@@ -156,6 +156,7 @@ def validate(config: Config) -> None:
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),
         (config.slam.max_lead >= 0, "slam.max_lead must be >= 0"),
+        (config.mapping.views_per_step >= 1, "mapping.views_per_step must be >= 1"),
         (config.keyframes.every >= 1, "keyframes.every must be >= 1"),
         (config.keyframes.overlap_samples >= 1, "keyframes.overlap_samples must be >= 1"),
         (config.dataset.stride >= 1, "dataset.stride must be >= 1"),

@@ -11,6 +11,7 @@ GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
+MapOptimizerKind = Literal["adam", "selective_adam"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,8 @@ class MappingConfig:
     prune_scale_factor: float = 0.1  # x scene radius
     prune_at: tuple[int, ...] = (0, 20)
     scene_radius_divisor: float = 0.0  # 0: by dataset (3 Replica-like, 2 TUM)
+    views_per_step: int = 1  # keyframe views rendered together per optimiser step (same renders in all)
+    optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw
 
 
 @dataclass(frozen=True)

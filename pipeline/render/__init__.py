@@ -17,10 +17,14 @@ from pipeline.render.reference import render_reference
 from pipeline.render.types import Camera, Gaussians, RenderOutput
 
 Renderer = Callable[[Gaussians, Camera], RenderOutput]
+ViewsRenderer = Callable[[Gaussians, list[Camera]], list[RenderOutput]]  # several cameras of one size at once
 
 FLAT_LOG_SCALE = -9.0  # log-scale of the normal axis when 2D Gaussians run on the reference backend
 
-__all__ = ["Camera", "Gaussians", "RenderOutput", "Renderer", "make_renderer", "resolve_backend"]
+__all__ = [
+    "Camera", "Gaussians", "RenderOutput", "Renderer", "ViewsRenderer", "make_renderer", "make_views_renderer",
+    "resolve_backend",
+]  # fmt: skip
 
 
 def resolve_backend(config: RenderConfig, device: torch.device) -> RenderBackend:
@@ -52,3 +56,14 @@ def make_renderer(config: RenderConfig, gaussians: GaussianConfig, device: torch
         return partial(fn, eps2d=config.eps2d, packed=config.packed)
     reference = partial(render_reference, eps2d=config.eps2d)
     return _flattened(reference) if gaussians.kind == "2d" else reference
+
+
+def make_views_renderer(config: RenderConfig, gaussians: GaussianConfig, device: torch.device) -> ViewsRenderer:
+    """Several cameras in one call: one batched rasterisation with gsplat's unpacked 3D Gaussians
+    (one launch of each kernel for all views), one camera after the other otherwise."""
+    if resolve_backend(config, device) == "gsplat" and gaussians.kind == "3d" and not config.packed:
+        from pipeline.render import gsplat_backend
+
+        return partial(gsplat_backend.render_gsplat_3d_views, eps2d=config.eps2d)
+    single = make_renderer(config, gaussians, device)
+    return lambda splats, cameras: [single(splats, camera) for camera in cameras]

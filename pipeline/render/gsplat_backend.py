@@ -63,6 +63,16 @@ def render_gsplat_3d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, p
     return _output(colors, alphas, radii, len(gaussians))
 
 
+def render_gsplat_3d_views(gaussians: Gaussians, cameras: list[Camera], eps2d: float = 0.3) -> list[RenderOutput]:
+    """Several cameras of one size in one unpacked rasterisation (gsplat's batched cameras)."""
+    arguments = _arguments(gaussians, cameras[0], eps2d, packed=False)
+    arguments["viewmats"] = torch.stack([camera.w2c for camera in cameras])
+    arguments["Ks"] = torch.stack([camera.intrinsics for camera in cameras])
+    colors, alphas, meta = gsplat.rasterization(colors=gaussians.colors, rasterize_mode="classic", **arguments)
+    n = len(gaussians)
+    return [_output(colors[c : c + 1], alphas[c : c + 1], meta["radii"][c], n) for c in range(len(cameras))]
+
+
 def render_gsplat_2d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, packed: bool = False) -> RenderOutput:
     """2D Gaussian surfels (2DGS): the third scale axis is ignored by the rasteriser.
 

@@ -12,7 +12,7 @@ import torch
 
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
-from pipeline.render import Gaussians, Renderer
+from pipeline.render import Gaussians, Renderer, make_views_renderer
 from pipeline.slam.backend import MappingBackend
 from pipeline.slam.frontend import TrackerMark, TrackingFrontend
 from pipeline.slam.gaussian_map import copied
@@ -34,9 +34,9 @@ class SplaTAM:
         near, far = config.render.near, config.render.far
         tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels))
         self.frontend = TrackingFrontend(tracker, config.tracking, device)
-        self.backend = MappingBackend(
-            config, renderer, MapSettings(renderer, config.mapping, config.loss, near, far, kernels), device
-        )
+        views = make_views_renderer(config.render, config.gaussians, device)
+        map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
+        self.backend = MappingBackend(config, renderer, map_settings, device)
 
     @property
     def frames_done(self) -> int:
