@@ -23,6 +23,7 @@ class Frame:
     intrinsics: np.ndarray  # [3, 3] float64 pixels
     c2w_gt: np.ndarray | None  # [4, 4] float64 ground-truth camera-to-world, if known
     c2w_prior: np.ndarray | None = None  # [4, 4] float64 a device's own pose estimate (e.g. ARKit), if used
+    received_at: float | None = None  # host clock (time.perf_counter, s) when a live source received it
 
     @property
     def height(self) -> int:
@@ -44,6 +45,7 @@ class DeviceFrame:
     intrinsics: torch.Tensor  # [3, 3] float32
     c2w_gt: torch.Tensor | None  # [4, 4] float32
     c2w_prior: torch.Tensor | None = None  # [4, 4] float32 a device's pose estimate: tracking starts from its motion
+    received_at: float | None = None  # host clock (time.perf_counter, s) when a live source received it
 
     @property
     def height(self) -> int:

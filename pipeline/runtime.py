@@ -92,6 +92,12 @@ class Graph:
     def source_policy(self) -> Policy:
         return "keep_newest" if self.source.live else "block"
 
+    def dropped(self) -> dict[str, int]:
+        """Frames dropped so far, by where: each queue, and a live SLAM stage's start."""
+        drops = {name: queue.dropped for name, queue in self.queues.items()}
+        drops.update({f"{stage.name}_start": stage.dropped for stage in self.slam})
+        return {name: count for name, count in drops.items() if count}
+
 
 def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
     report = RuntimeReport(loader, len(graph.sink.results), wall, interrupted)
@@ -132,9 +138,11 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     frame in SLAM finishes and the rest is left). A failing stage stops everything and its
     StageFailure is raised."""
     q = graph.queue_size
-    refs: StageQueue[Any] = StageQueue(q, graph.source_policy)
-    frames: StageQueue[Any] = StageQueue(q)
-    uploaded: StageQueue[Any] = StageQueue(q)
+    live = graph.source.live  # every queue up to SLAM then holds only the newest item (drops counted)
+    q_in = 1 if live else q
+    refs: StageQueue[Any] = StageQueue(q_in, graph.source_policy)
+    frames: StageQueue[Any] = StageQueue(q_in, graph.source_policy)
+    uploaded: StageQueue[Any] = StageQueue(q_in, graph.source_policy)
     results: StageQueue[Any] = StageQueue(4 * q)
     between = [StageQueue[Any](q) for _ in graph.slam[1:]]  # tracked frames, when overlapped
     graph.queues.update(source=refs, decoded=frames, uploaded=uploaded, results=results)
@@ -183,6 +191,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     wall = time.perf_counter() - start
     report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
     report.queues = {name: {"max_depth": q.max_depth, "dropped": q.dropped} for name, q in graph.queues.items()}
+    report.queues.update({f"{s.name}_start": {"max_depth": 1, "dropped": s.dropped} for s in graph.slam if s.dropped})
     return report
 
 

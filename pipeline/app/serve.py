@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ from pipeline.source import Source
 log = logging.getLogger("gsplatam")
 
 FPS_WINDOW = 10  # frames over which the status endpoint's fps is measured
+AGE_WINDOW = 100  # frames over which the status endpoint's frame ages are taken
 
 
 @dataclass
@@ -50,6 +51,21 @@ def live_ate_cm(results: list[FrameResult]) -> float | None:
     return 100 * absolute_trajectory_error(estimated, reference).rmse_m
 
 
+def frame_age_ms(results: list[FrameResult]) -> dict[str, float | None]:
+    """Median and 95th percentile of the frames' ages (arrival to the start of SLAM, and to the
+    result), milliseconds; None without live frames."""
+
+    def percentiles(ages: list[float]) -> tuple[float | None, float | None]:
+        if not ages:
+            return None, None
+        p50, p95 = np.percentile(np.array(ages) * 1000.0, [50, 95])
+        return float(p50), float(p95)
+
+    start = percentiles([r.age_at_start_s for r in results if r.age_at_start_s is not None])
+    done = percentiles([r.age_s for r in results if r.age_s is not None])
+    return {"start_p50": start[0], "start_p95": start[1], "result_p50": done[0], "result_p95": done[1]}
+
+
 def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
     source, sink = session.source, session.sink
@@ -58,13 +74,15 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
         results, arrivals = sink.results, sink.arrivals
         recent = arrivals[-FPS_WINDOW:]
         fps = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
-        source_queue = graph.queues.get("source")
+        dropped = graph.dropped()
         last = results[-1] if results else None
         return {
             "source": source.name,
             **vars(source.counters),
             "processed": len(results),
-            "dropped": source_queue.dropped if source_queue is not None else 0,
+            "dropped": sum(dropped.values()),
+            "dropped_by_queue": dropped,
+            "frame_age_ms": frame_age_ms(results[-AGE_WINDOW:]),
             "fps": fps,
             "gaussians": last.gaussians if last else 0,
             "tracking": _tracking_state(last),
@@ -86,10 +104,20 @@ def _tracking_state(last: FrameResult | None) -> str:
     return f"weak: {last.warning}" if last.warning else "ok"
 
 
+def with_live_bounds(config: Config) -> Config:
+    """A live session runs for hours: keyframes and map bounded by `live.max_keyframes` and
+    `live.max_gaussians` unless keyframes.max_kept / mapping.max_gaussians are set."""
+    if not config.keyframes.max_kept:
+        config = replace(config, keyframes=replace(config.keyframes, max_kept=config.live.max_keyframes))
+    if not config.mapping.max_gaussians:
+        config = replace(config, mapping=replace(config.mapping, max_gaussians=config.live.max_gaussians))
+    return config
+
+
 def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
     """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the end."""
     device = resolve_device(config.run.device)
-    config = complete_config(config, device, "tum")  # a phone's depth is a real sensor's, as TUM's
+    config = with_live_bounds(complete_config(config, device, "tum"))  # a phone's depth is a real sensor's, as TUM's
     folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
     session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
 
@@ -117,6 +145,7 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "versions": versions(),
         "runtime": report.summary(),
         "time": timing_summary(sink.results, report, sink.arrivals),
+        "frame_age_ms": frame_age_ms(sink.results),
         "ate_rmse_cm": live_ate_cm(sink.results),
     }
     session.folder.write_metrics(metrics)

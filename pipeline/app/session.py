@@ -96,7 +96,7 @@ def slam_stages(session: Session) -> list[SlamStage]:
     slam, source, schedule = session.slam, session.source, session.config.slam
     if schedule.schedule == "overlapped":
         return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live)
-    return sequential_stages(slam, source.last_index, session.observers)
+    return sequential_stages(slam, source.last_index, session.observers, source.live)
 
 
 def graph_of(session: Session) -> Graph:

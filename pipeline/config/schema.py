@@ -67,6 +67,7 @@ class MappingConfig:
     prune_scale_factor: float = 0.1  # x scene radius
     prune_at: tuple[int, ...] = (0, 20)
     scene_radius_divisor: float = 0.0  # 0: by dataset (3 Replica-like, 2 TUM)
+    max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
     views_per_step: int = 1  # keyframe views rendered together per optimiser step (same renders in all)
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw
 
@@ -81,6 +82,7 @@ class DensifyConfig:
 class KeyframeConfig:
     every: int = 5
     overlap_samples: int = 1600
+    max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes (keyframes.py)
 
 
 @dataclass(frozen=True)
@@ -145,6 +147,8 @@ class LiveConfig:
     stall_timeout_s: float = 5.0  # no frame for this long: the phone is gone, reconnect
     device_pose: PoseUse = "initial_guess"  # NeRFCapture: what the phone's pose is used for
     dds_domain: int = 0  # NeRFCapture: the DDS domain id (the app uses 0)
+    max_keyframes: int = 200  # a live session's keyframes.max_kept unless that is set: memory flat for hours
+    max_gaussians: int = 2_000_000  # a live session's mapping.max_gaussians unless that is set
 
 
 @dataclass(frozen=True)

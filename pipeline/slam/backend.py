@@ -17,12 +17,14 @@ from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.frontend import TrackedFrame, TrackerMark
-from pipeline.slam.gaussian_map import concatenate, seed_gaussians
-from pipeline.slam.keyframes import Keyframe, select_window
+from pipeline.slam.gaussian_map import concatenate, most_opaque, seed_gaussians
+from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping import MapSettings, map_window
 from pipeline.slam.results import FrameResult
 from pipeline.slam.timing import StageClock
+
+MAP_BOUND_MARGIN = 0.9  # a map past mapping.max_gaussians is cut to this fraction of it
 
 
 class MappingBackend:
@@ -63,11 +65,27 @@ class MappingBackend:
         with self.clock.stage("mapping"):
             self._map(window + [current], frame.intrinsics)
         if self.frames_seen - self.last_keyframe_seen >= self.config.keyframes.every or is_last:
-            self.keyframes.append(current)
-            self.last_keyframe_seen = self.frames_seen
+            self._keep(current)
+        self._bound_map()
         self.publish()
         seconds = self.clock.read()
         return self._passed(tracked, added, seconds.get("densify", 0.0), seconds.get("mapping", 0.0), mapped=True)
+
+    def _keep(self, keyframe: Keyframe) -> None:
+        """Add a keyframe; past `keyframes.max_kept`, drop the most redundant viewpoint."""
+        self.keyframes.append(keyframe)
+        self.last_keyframe_seen = self.frames_seen
+        limit = self.config.keyframes.max_kept
+        if limit and len(self.keyframes) > limit:
+            protected = min(self.config.mapping.window, limit - 1)
+            del self.keyframes[most_redundant(torch.stack([k.c2w for k in self.keyframes]), protected)]
+
+    def _bound_map(self) -> None:
+        """Past `mapping.max_gaussians`, keep the most opaque 90% of it (the margin spares a
+        selection every frame)."""
+        limit = self.config.mapping.max_gaussians
+        if limit and self.gaussians is not None and len(self.gaussians) > limit:
+            self.gaussians = most_opaque(self.gaussians, int(MAP_BOUND_MARGIN * limit))
 
     def skip(self, tracked: TrackedFrame) -> FrameResult:
         """Pass a tracked frame on without mapping it."""

@@ -8,6 +8,7 @@ as a `TrackedFrame`, with the marks a checkpoint cut at that frame needs from th
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import torch
@@ -62,6 +63,7 @@ class TrackingFrontend:
     def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackedFrame:
         """Frame t against the latest map version (None: the first frame, where the map starts:
         its pose is the identity). Reads the frame's tracking scalars once, to judge it."""
+        started = time.perf_counter()
         with self.clock.stage("tracking"):
             if latest is None:
                 c2w = c2w_init = torch.eye(4, device=self.device)
@@ -78,6 +80,9 @@ class TrackingFrontend:
             ready.record()
         result = self._judge(frame, c2w, c2w_init, loss, coverage)
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
+        if frame.received_at is not None:
+            result.received_at = frame.received_at
+            result.age_at_start_s = started - frame.received_at
         mark = TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
         return TrackedFrame(frame, c2w, result, mark, ready)
 

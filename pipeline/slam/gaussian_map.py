@@ -67,6 +67,14 @@ def concatenate(a: Gaussians, b: Gaussians) -> Gaussians:
     return Gaussians(*(torch.cat([getattr(a, n).detach(), getattr(b, n).detach()]) for n in PARAMETER_NAMES))
 
 
+def most_opaque(gaussians: Gaussians, count: int) -> Gaussians:
+    """The `count` most opaque Gaussians (all, when there are no more than that)."""
+    if len(gaussians) <= count:
+        return gaussians
+    keep = torch.topk(gaussians.opacity_logits.detach(), count, sorted=False).indices
+    return Gaussians(*(getattr(gaussians, n).detach()[keep] for n in PARAMETER_NAMES))
+
+
 def prune_mask(gaussians: Gaussians, min_opacity: float, max_scale: float) -> torch.Tensor:
     """[N] bool of the Gaussians to keep: opacity >= min_opacity and largest scale <= max_scale."""
     opacity = torch.sigmoid(gaussians.opacity_logits)

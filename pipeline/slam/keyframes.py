@@ -81,3 +81,22 @@ def select_window(
         order = torch.randperm(len(overlapping), generator=generator)
         chosen = overlapping[order][: max(window - 2, 0)].tolist()
     return chosen + [len(keyframes) - 1]
+
+
+ROTATION_WEIGHT_M = 0.5  # metres of viewpoint change that count as much as one radian of rotation
+
+
+def most_redundant(c2w: torch.Tensor, protected_newest: int) -> int:
+    """The position of the keyframe to drop when the store is full: of poses [K, 4, 4]
+    (camera-to-world, oldest first), the one closest to its next newer keyframe (camera-centre
+    distance plus ROTATION_WEIGHT_M per radian between their viewing directions). The first and
+    the newest `protected_newest` are never chosen, so the start and the mapping window stay."""
+    count = c2w.shape[0]
+    candidates = range(1, count - protected_newest)
+    if not candidates:
+        raise ValueError(f"no keyframe of {count} may go with the newest {protected_newest} protected")
+    poses = c2w.detach().double().cpu()  # [K, 4, 4]: small, read once
+    step = torch.linalg.norm(poses[1:, :3, 3] - poses[:-1, :3, 3], dim=-1)
+    cosine = (poses[1:, :3, 2] * poses[:-1, :3, 2]).sum(-1).clamp(-1.0, 1.0)
+    distance = step + ROTATION_WEIGHT_M * torch.arccos(cosine)  # [K - 1]: keyframe i to i + 1
+    return min(candidates, key=lambda i: float(distance[i]))

@@ -22,3 +22,6 @@ class FrameResult:
     warning: str = ""  # why tracking looked weak though its pose is used and mapped (low map coverage)
     mapped: bool = True  # False: tracked only (lost, or skipped by a live session's mapping)
     map_version: int = 0  # the map version published after this frame (the latest one when not mapped)
+    received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival
+    age_at_start_s: float | None = None  # live: seconds from the frame's arrival to the start of its tracking
+    age_s: float | None = None  # live: seconds from the frame's arrival to its result (set by the sink)

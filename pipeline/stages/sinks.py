@@ -32,6 +32,8 @@ def frame_row(result: FrameResult) -> dict[str, Any]:
         "warning": result.warning,
         "mapped": int(result.mapped),
         "map_version": result.map_version,
+        "age_at_start_s": "" if result.age_at_start_s is None else f"{result.age_at_start_s:.4f}",
+        "age_s": "" if result.age_s is None else f"{result.age_s:.4f}",
     }
 
 
@@ -54,7 +56,10 @@ class ResultSink:
         )
 
     def consume(self, result: FrameResult) -> None:
-        self.arrivals.append(time.perf_counter())
+        now = time.perf_counter()
+        self.arrivals.append(now)
+        if result.received_at is not None:
+            result.age_s = now - result.received_at
         self.results.append(result)
         self.write_rows([frame_row(result)])
         if result.lost:

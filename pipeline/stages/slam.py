@@ -40,6 +40,11 @@ class SlamStage:
     pass_over: Callable[[Any], Any] | None = None
     finish_on_stop: bool = False
     interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
+    dropped: int = 0  # live: frames not started because a newer one was waiting
+
+    def drop(self, item: Any) -> None:
+        """The pass-over of a live stage that takes frames: never start a stale frame."""
+        self.dropped += 1
 
 
 @contextlib.contextmanager
@@ -89,8 +94,11 @@ class LeadGate:
             self._changed.notify_all()
 
 
-def sequential_stages(slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver]) -> list[SlamStage]:
-    """Track and map each frame in one thread, on the thread's current stream."""
+def sequential_stages(
+    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], live: bool = False
+) -> list[SlamStage]:
+    """Track and map each frame in one thread, on the thread's current stream. Live, a frame is
+    started only when no newer one is waiting (the older ones are dropped and counted)."""
     spans = GpuSpans(slam.device)
 
     def step(uploaded: UploadedFrame) -> FrameResult:
@@ -101,7 +109,10 @@ def sequential_stages(slam: SplaTAM, last_index: int | None, observers: Sequence
             observe(slam, frame, result)
         return result
 
-    return [SlamStage("slam", step, spans)]
+    stage = SlamStage("slam", step, spans)
+    if live:
+        stage.pass_over = stage.drop
+    return [stage]
 
 
 def overlapped_stages(
@@ -109,7 +120,8 @@ def overlapped_stages(
 ) -> list[SlamStage]:
     """Tracking and mapping in two threads and two CUDA streams. Offline, tracking runs at most
     `max_lead` frames ahead of mapping; live, it never waits for mapping, and mapping takes the
-    newest tracked frame, passing the older ones on unmapped."""
+    newest tracked frame, passing the older ones on unmapped; and tracking starts only the newest
+    uploaded frame (the older ones are dropped and counted)."""
     gate = LeadGate(None if live else max_lead)
     track_spans, map_spans = GpuSpans(slam.device), GpuSpans(slam.device)
     track_stream, map_stream = _stream_for(slam), _stream_for(slam)
@@ -135,7 +147,7 @@ def overlapped_stages(
         with _on_stream(map_stream):
             return finish(tracked, slam.backend.skip(tracked))
 
-    return [
-        SlamStage("tracking", track, track_spans, interrupt=gate.open),
-        SlamStage("mapping", map_frame, map_spans, pass_over=skip if live else None, finish_on_stop=True),
-    ]
+    tracking = SlamStage("tracking", track, track_spans, interrupt=gate.open)
+    if live:
+        tracking.pass_over = tracking.drop
+    return [tracking, SlamStage("mapping", map_frame, map_spans, pass_over=skip if live else None, finish_on_stop=True)]

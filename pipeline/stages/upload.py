@@ -37,6 +37,7 @@ def host_frame_tensors(frame: Frame) -> DeviceFrame:
         intrinsics=torch.from_numpy(frame.intrinsics).float(),
         c2w_gt=None if frame.c2w_gt is None else torch.from_numpy(frame.c2w_gt).float(),
         c2w_prior=None if frame.c2w_prior is None else torch.from_numpy(frame.c2w_prior).float(),
+        received_at=frame.received_at,
     )
 
 
@@ -88,7 +89,9 @@ class PinnedUploader:
             if tensor is not None:
                 tensor.record_stream(consumer)  # allocated on the copy stream, used on the compute stream
         self._events[k] = event
-        device_frame = DeviceFrame(frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt, c2w_prior)
+        device_frame = DeviceFrame(
+            frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt, c2w_prior, frame.received_at
+        )
         return UploadedFrame(device_frame, event)
 
 

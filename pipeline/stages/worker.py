@@ -38,7 +38,7 @@ async def dedicated_thread_stage(
     handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
     thread finishes the item in hand and takes no other, unless `finish_on_stop` (then it goes
     on to the inbox's end). With `pass_over`, of the items waiting in the inbox only the newest
-    goes to `fn`; the older ones go, in order, to `pass_over`. `interrupt` is called when the
+    goes to `fn`; the older ones go, in order, to `pass_over` (which may return None: dropped). `interrupt` is called when the
     stage ends, to unblock an `fn` that waits for another stage."""
     loop = asyncio.get_running_loop()
     handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
@@ -88,20 +88,29 @@ async def dedicated_thread_stage(
                 handoff.put(END)
                 return
 
+    async def halt_on_stop() -> None:
+        """The moment a stop is asked for, the worker takes no new item (not one more frame)."""
+        await stop.wait()
+        if not finish_on_stop:
+            halted.set()
+
     thread = threading.Thread(target=work, name=f"{name}-worker", daemon=True)
     thread.start()
     feeder = asyncio.create_task(feed())
+    watcher = asyncio.create_task(halt_on_stop())
     try:
         while not isinstance(results := await finished.get(), EndOfStream):
             if isinstance(results, StageFailure):
                 raise results
             for result in results:
-                await outbox.put(result)
+                if result is not None:  # a passed-over item that is dropped
+                    await outbox.put(result)
             slots.release()
             if stopping():
                 halted.set()
     finally:
         feeder.cancel()
+        watcher.cancel()
         halted.set()
         if interrupt is not None:
             interrupt()

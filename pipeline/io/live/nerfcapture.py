@@ -14,9 +14,10 @@ import functools
 import logging
 import math
 import threading
+import time
 from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import cyclonedds.idl as idl
@@ -129,6 +130,7 @@ class NeRFCapturePacket:
     timestamp: float  # seconds, the phone's clock
     sample: SplatCaptureFrame
     c2w: np.ndarray  # [4, 4] float64 device camera-to-world (OpenCV axes) relative to the first frame
+    received_at: float = field(default_factory=time.perf_counter)  # host clock, s
 
 
 class NeRFCaptureSource:
@@ -208,6 +210,7 @@ class NeRFCaptureSource:
             intrinsics,
             c2w_gt=packet.c2w if self.device_pose == "groundtruth" else None,
             c2w_prior=packet.c2w if self.device_pose == "initial_guess" else None,
+            received_at=packet.received_at,
         )
 
 

@@ -177,6 +177,7 @@ class Record3DPacket:
     timestamp: float  # seconds since the source started, host clock at arrival
     image: av.VideoFrame  # packed [H, 2W] depth | colour
     metadata: dict[str, Any]
+    received_at: float = field(default_factory=time.perf_counter)  # host clock, s
 
 
 class Record3DSource:
@@ -247,7 +248,7 @@ class Record3DSource:
         if self.size is None:
             self.size = halved_to(color.shape[1], color.shape[0], self.max_width)
         color, depth, intrinsics = resize_rgbd(color, depth, intrinsics, self.size)
-        return Frame(packet.index, packet.timestamp, color, depth, intrinsics, None)
+        return Frame(packet.index, packet.timestamp, color, depth, intrinsics, None, received_at=packet.received_at)
 
     def _skip(self, packet: Record3DPacket, why: str) -> None:
         self.counters.skipped += 1

@@ -21,6 +21,7 @@ from pipeline.slam.state import Checkpoint
 FRAME_COLUMNS = [
     "index", "timestamp", "tracking_s", "densify_s", "mapping_s", "total_s",
     "gaussians", "added", "tracking_loss", "coverage", "lost", "warning", "mapped", "map_version",
+    "age_at_start_s", "age_s",
 ]  # fmt: skip
 
 
