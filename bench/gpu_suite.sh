@@ -46,6 +46,8 @@ for part in "$@"; do
                      cp /tmp/profile/overlapped/metrics.json "$out/profile_tiny_overlapped.json" ;;
     tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
+    mapping-parity) python3 bench/mapping_parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    smoke) bench synthetic --presets tiny --set synthetic.frames=60 --variants sequential,overlapped,views2,selective-adam --stem smoke ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
