@@ -8,7 +8,7 @@ from typing import Any
 from torch.autograd import DeviceType
 from torch.profiler import profile
 
-STAGES = ("decode", "upload", "slam_step", "tracking", "densify", "mapping")
+STAGES = ("decode", "upload", "slam_step", "tracking_stage", "mapping_stage", "tracking", "densify", "mapping")
 
 
 def all_threads_config() -> Any:
