@@ -19,7 +19,7 @@ from pipeline.slam.keyframes import Keyframe, select_window
 from pipeline.slam.mapping import MapSettings, map_window
 from pipeline.slam.state import Checkpoint, SlamState
 from pipeline.slam.timing import StageClock
-from pipeline.slam.tracking import TrackSettings, make_tracker
+from pipeline.slam.tracking import TrackResult, TrackSettings, make_tracker
 
 LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
 LOSS_HISTORY_MIN = 5
@@ -33,10 +33,19 @@ class FrameResult:
     seconds: dict[str, float]  # tracking, densify (with keyframe selection), mapping, total
     gaussians: int
     added: int
-    tracking_loss: float  # per tracked pixel at the chosen pose
+    tracking_loss: float  # per tracked pixel at the chosen pose (adam: its loss; align: squared point-to-plane, m^2)
     coverage: float  # fraction of valid-depth pixels used by tracking
     lost: str = ""  # empty when tracking looked healthy, else why not
     c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
+
+
+@dataclass(frozen=True)
+class TrackingVerdict:
+    """Tracking's outcome for one frame, read on the host right after tracking."""
+
+    lost: str  # empty when tracking held, else why not
+    loss: float  # per tracked pixel at the chosen pose
+    coverage: float  # fraction of valid-depth pixels tracked
 
 
 class SplaTAM:
@@ -59,31 +68,37 @@ class SplaTAM:
         return len(self.state.poses)
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
-        """Process one frame (colour, depth and intrinsics on the device) and return its result."""
+        """Process one frame (colour, depth and intrinsics on the device) and return its result.
+
+        Tracking is judged as soon as it ends: a lost frame keeps its pose (one per frame) but
+        is neither densified, mapped nor kept as a keyframe."""
         cfg, state = self.config, self.state
         with self.clock.stage("total"):
+            added, window = 0, []
             if state.gaussians is None:
-                c2w = c2w_init = torch.eye(4, device=self.device)
-                loss, coverage = torch.zeros((), device=self.device), torch.ones((), device=self.device)
+                c2w = torch.eye(4, device=self.device)
+                verdict = TrackingVerdict(lost="", loss=0.0, coverage=1.0)
                 with self.clock.stage("densify"):
                     added = self._initialise(frame, c2w)
-                window: list[Keyframe] = []
             else:
                 with self.clock.stage("tracking"):
                     c2w_init = self._initial_pose(frame)
                     tracked = self.tracker(detached(state.gaussians), frame, c2w_init)
-                    c2w, loss, coverage = tracked.c2w, tracked.best_loss, tracked.coverage
-                with self.clock.stage("densify"):
-                    added = self._densify(frame, c2w)
-                    window = self._window(frame, c2w)
-            current = Keyframe.of(frame.index, frame.color, frame.depth, c2w.detach())
-            with self.clock.stage("mapping"):
-                self._map(window + [current], frame.intrinsics)
-            if self.frames_done % cfg.keyframes.every == 0 or is_last:
-                state.keyframes.append(current)
+                    c2w = tracked.c2w
+                verdict = self._judge(frame, tracked, c2w_init)
+                if not verdict.lost:
+                    with self.clock.stage("densify"):
+                        added = self._densify(frame, c2w)
+                        window = self._window(frame, c2w)
+            if not verdict.lost:
+                current = Keyframe.of(frame.index, frame.color, frame.depth, c2w.detach())
+                with self.clock.stage("mapping"):
+                    self._map(window + [current], frame.intrinsics)
+                if self.frames_done % cfg.keyframes.every == 0 or is_last:
+                    state.keyframes.append(current)
             state.poses.append(c2w.detach())
             state.last_prior = frame.c2w_prior
-        return self._result(frame, c2w, c2w_init, loss, coverage, self.clock.read(), added)
+        return self._result(frame, c2w, verdict, self.clock.read(), added)
 
     def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
         """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""
@@ -137,35 +152,33 @@ class SplaTAM:
             state.gaussians, views, intrinsics, state.scene_radius, self.rng, self.map_settings
         )
 
-    def _result(
-        self,
-        frame: DeviceFrame,
-        c2w: torch.Tensor,
-        c2w_init: torch.Tensor,
-        loss: torch.Tensor,
-        coverage: torch.Tensor,
-        seconds: dict[str, float],
-        added: int,
-    ) -> FrameResult:
-        """Read the frame's device scalars once and judge whether tracking held."""
+    def _judge(self, frame: DeviceFrame, tracked: TrackResult, c2w_init: torch.Tensor) -> TrackingVerdict:
+        """Read the tracking's device scalars once and judge whether it held."""
         valid = float((frame.depth > 0).sum())
-        cov = float(coverage)
-        per_pixel = float(loss) / max(cov * valid, 1.0)
-        jump = float(torch.linalg.norm(c2w[:3, 3] - c2w_init[:3, 3]))
+        cov = float(tracked.coverage)
+        per_pixel = float(tracked.best_loss) / max(cov * valid, 1.0)
+        jump = float(torch.linalg.norm(tracked.c2w[:3, 3] - c2w_init[:3, 3]))
         history = self.state.loss_history
         lost = ""
-        if not math.isfinite(per_pixel) and self.frames_done > 1:
+        if not math.isfinite(per_pixel):
             lost = "tracking loss is not finite"
+        elif tracked.failure:
+            lost = tracked.failure
         elif jump > self.config.tracking.lost_translation_m:
             lost = f"pose jumped {jump:.3f} m from its prediction"
-        elif self.frames_done > 1 and cov < self.config.tracking.lost_coverage:
+        elif cov < self.config.tracking.lost_coverage:
             lost = f"map covers only {cov:.0%} of the valid pixels"
         elif (
             len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]
         ):
-            lost = f"tracking loss {per_pixel:.4f} per pixel is over {LOSS_EXPLOSION_FACTOR:g}x its running median"
-        if self.frames_done > 1 and math.isfinite(per_pixel):
+            lost = f"tracking loss {per_pixel:.4g} per pixel is over {LOSS_EXPLOSION_FACTOR:g}x its running median"
+        if math.isfinite(per_pixel):
             history.append(per_pixel)
+        return TrackingVerdict(lost, per_pixel, cov)
+
+    def _result(
+        self, frame: DeviceFrame, c2w: torch.Tensor, verdict: TrackingVerdict, seconds: dict[str, float], added: int
+    ) -> FrameResult:
         assert self.state.gaussians is not None
         return FrameResult(
             index=frame.index,
@@ -174,9 +187,9 @@ class SplaTAM:
             seconds={k: seconds.get(k, 0.0) for k in ("tracking", "densify", "mapping", "total")},
             gaussians=len(self.state.gaussians),
             added=added,
-            tracking_loss=per_pixel,
-            coverage=cov,
-            lost=lost,
+            tracking_loss=verdict.loss,
+            coverage=verdict.coverage,
+            lost=verdict.lost,
             c2w_gt=None if frame.c2w_gt is None else frame.c2w_gt.cpu(),
         )
 
