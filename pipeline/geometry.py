@@ -151,8 +151,8 @@ def se3_exp(twist: torch.Tensor) -> torch.Tensor:
     c = torch.where(small, 1 / 6 - theta_sq / 120, (theta - sin) / theta**3)
     w = skew(omega)
     w_sq = w @ w
-    eye = torch.eye(3, dtype=twist.dtype, device=twist.device)
-    rotation = eye + a * w + b * w_sq
-    translation = (eye + b * w + c * w_sq) @ v
+    eye = torch.eye(4, dtype=twist.dtype, device=twist.device)
+    rotation = eye[:3, :3] + a * w + b * w_sq
+    translation = (eye[:3, :3] + b * w + c * w_sq) @ v
     top = torch.cat([rotation, translation[:, None]], dim=1)
-    return torch.cat([top, _last_row(top.device, top.dtype)], dim=0)
+    return torch.cat([top, eye[3:]], dim=0)

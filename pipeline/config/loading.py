@@ -167,7 +167,10 @@ def validate(config: Config) -> None:
         (config.tracking.align_max_depth_diff_m > 0, "tracking.align_max_depth_diff_m must be > 0"),
         (0 <= config.tracking.align_min_inliers <= 1, "tracking.align_min_inliers must be in [0, 1]"),
         (0 <= config.tracking.align_min_conditioning < 1, "tracking.align_min_conditioning must be in [0, 1)"),
-        (config.tracking.align_max_residual_m > 0, "tracking.align_max_residual_m must be > 0"),
+        (
+            min(config.tracking.align_max_residual_m, config.tracking.align_max_intensity_rms) > 0,
+            "tracking.align_max_residual_m and align_max_intensity_rms must be > 0",
+        ),
         (config.tracking.align_recovery_iters >= 0, "tracking.align_recovery_iters must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),

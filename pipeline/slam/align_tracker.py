@@ -10,8 +10,8 @@ import torch
 
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import invert_pose
-from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
 from pipeline.slam.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
 from pipeline.slam.rgbd_alignment import (
     AlignIteration,
@@ -32,7 +32,7 @@ MIN_PIXELS = 64  # fewer valid-depth pixels, or fewer inliers, and no pose is es
 @dataclass(frozen=True)
 class AlignResult:
     c2w: torch.Tensor  # [4, 4] camera-to-world
-    residual_sq: torch.Tensor  # [] sum of squared point-to-plane residuals over the inliers, metres^2
+    geometric_sq: torch.Tensor  # [] sum of squared point-to-plane residuals over the inliers, metres^2
     coverage: torch.Tensor  # [] inliers / valid-depth pixels of the frame
     failure: str  # empty when the solve looks sound, else why not
 
@@ -45,6 +45,7 @@ class SolveReport:
     associated: int  # of them, projected onto valid render pixels
     inliers: int  # of those, within the depth gate
     rms_m: float  # RMS point-to-plane residual of the inliers
+    rms_intensity: float  # RMS intensity residual of the inliers
     conditioning: float  # smallest / largest eigenvalue of the Jacobi-scaled normal equations
 
     def failure(self, config: TrackingConfig) -> str:
@@ -60,6 +61,8 @@ class SolveReport:
             return f"the alignment is ill-conditioned (eigenvalue ratio {self.conditioning:.1e})"
         if self.rms_m > config.align_max_residual_m:
             return f"point-to-plane residual {100 * self.rms_m:.1f} cm RMS"
+        if self.rms_intensity > config.align_max_intensity_rms:
+            return f"intensity residual {self.rms_intensity:.2f} RMS: the frame's colours do not match the map's"
         return ""
 
 
@@ -76,16 +79,13 @@ def conditioning(hessian: torch.Tensor) -> float:
 
 def read_report(fit: Linearisation, valid: torch.Tensor) -> SolveReport:
     """One device-to-host copy of the solve's statistics; `valid` [M] the frame's valid depth."""
-    packed = torch.cat(
-        [
-            torch.stack([valid.sum(), fit.associated, fit.inliers]).double(),
-            fit.residual_sq.double()[None],
-            fit.hessian.reshape(-1),
-        ]
-    ).cpu()
+    counts = torch.stack([valid.sum(), fit.associated, fit.inliers]).double()
+    squares = torch.stack([fit.geometric_sq, fit.photometric_sq]).double()
+    packed = torch.cat([counts, squares, fit.hessian.reshape(-1)]).cpu()
     valid_n, associated, inliers = (int(x) for x in packed[:3])
-    rms = float((packed[3] / max(inliers, 1)).sqrt())
-    return SolveReport(valid_n, associated, inliers, rms, conditioning(packed[4:].reshape(6, 6)))
+    rms_m, rms_intensity = (float(x) for x in (packed[3:5] / max(inliers, 1)).sqrt())
+    hessian = packed[5:].reshape(6, 6)
+    return SolveReport(valid_n, associated, inliers, rms_m, rms_intensity, conditioning(hessian))
 
 
 class AlignTracker:
@@ -114,41 +114,51 @@ class AlignTracker:
 
     def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> AlignResult:
         check_pyramid_fits(len(self.params), frame.height, frame.width)
-        sources = self._sources(frame)
-        targets = self._targets(gaussians, frame, c2w_init)
-        state = align(sources, targets, self.params, self.config.align_iters, self.iteration)
+        sources, targets = self.prepare(frame, self._render(gaussians, frame, c2w_init))
+        state = self.solve(sources, targets)
         report = read_report(state.fit, sources[0].valid)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
             # One recovery attempt: more coarse-level iterations widen the basin of convergence.
-            retry = align(sources, targets, self.params, self.recovery_schedule, self.iteration)
-            retry_report = read_report(retry.fit, sources[0].valid)
-            retry_failure = retry_report.failure(self.config)
+            retry = self.solve(sources, targets, self.recovery_schedule)
+            retry_failure = read_report(retry.fit, sources[0].valid).failure(self.config)
             if retry_failure:
                 failure = f"{failure}; after a recovery attempt: {retry_failure}"
             else:
-                state, report, failure = retry, retry_report, ""
+                state, failure = retry, ""
         return self._result(state, c2w_init, sources[0].valid, failure)
 
-    def _sources(self, frame: DeviceFrame) -> list[SourcePoints]:
-        """The frame's pyramid as points in its own camera, finest first."""
-        levels = rgbd_pyramid(intensity(frame.color), frame.depth, frame.intrinsics, len(self.params))
-        return [source_points(level) for level in levels]
-
-    def _targets(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> list[TargetMaps]:
-        """Render once at `c2w_init`: depth where the silhouette passes `align_min_silhouette`, and
-        intensity normalised by the silhouette (as the renderer normalises depth)."""
+    def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> RenderOutput:
         camera = Camera(invert_pose(c2w_init), frame.intrinsics, frame.width, frame.height, self.near, self.far)
         with torch.no_grad():
-            out = self.renderer(gaussians, camera)
-        covered = out.silhouette > self.config.align_min_silhouette
-        depth = torch.where(covered, out.depth, torch.zeros_like(out.depth))
-        gray = intensity(out.color) / out.silhouette.clamp(min=self.config.align_min_silhouette)
-        return [target_maps(level) for level in rgbd_pyramid(gray, depth, frame.intrinsics, len(self.params))]
+            return self.renderer(gaussians, camera)
+
+    def prepare(self, frame: DeviceFrame, rendered: RenderOutput) -> tuple[list[SourcePoints], list[TargetMaps]]:
+        """The frame's pyramid as points in its own camera and the render's as maps, finest first.
+
+        The render counts where its silhouette passes `align_min_silhouette`; its intensity is
+        normalised by the silhouette, as the renderer normalises depth."""
+        levels = len(self.params)
+        sources = [
+            source_points(level)
+            for level in rgbd_pyramid(intensity(frame.color), frame.depth, frame.intrinsics, levels)
+        ]
+        threshold = self.config.align_min_silhouette
+        depth = torch.where(rendered.silhouette > threshold, rendered.depth, torch.zeros_like(rendered.depth))
+        gray = intensity(rendered.color) / rendered.silhouette.clamp(min=threshold)
+        targets = [target_maps(level) for level in rgbd_pyramid(gray, depth, frame.intrinsics, levels)]
+        return sources, targets
+
+    def solve(
+        self, sources: list[SourcePoints], targets: list[TargetMaps], schedule: tuple[int, ...] | None = None
+    ) -> LmState:
+        """The coarse-to-fine solve (`align_iters`, or `schedule`) from the render's pose."""
+        return align(sources, targets, self.params, schedule or self.config.align_iters, self.iteration)
 
     def _result(self, state: LmState, c2w_init: torch.Tensor, valid: torch.Tensor, failure: str) -> AlignResult:
-        """The camera-to-world of the solve (the prediction if it is not finite)."""
+        """The camera-to-world of the solve, re-orthonormalised (the prediction if it is not finite)."""
         c2w = c2w_init @ state.pose.to(c2w_init.dtype)  # the motion maps this camera into the render's
+        c2w = pose_matrix(rotmat_to_quat(c2w[:3, :3]), c2w[:3, 3])  # exactly rigid: no drift in later products
         c2w = torch.where(torch.isfinite(c2w).all(), c2w, c2w_init)
         coverage = state.fit.inliers / valid.sum().clamp(min=1)
-        return AlignResult(c2w, state.fit.residual_sq, coverage, failure)
+        return AlignResult(c2w, state.fit.geometric_sq, coverage, failure)

@@ -7,7 +7,8 @@ camera) and projected into the target, where the target's maps are sampled bilin
 (projective association). Two residuals per pixel:
 
 - point-to-plane, metres: r_g = n . (T p_s - q), with q and n the target's vertex and normal;
-- photometric: r_c = I_t(pi(T p_s)) - I_s(u), intensities in [0, 1].
+- photometric: r_c = I_t(pi(T p_s)) - I_s(u) - o, intensities in [0, 1], o the mean of
+  I_t - I_s over the inliers (a change of the camera's exposure is not a motion).
 
 Both are divided by their scales (`AlignParams`) and weighted by Huber's function. A pixel takes
 part (an inlier) when the target is valid around its projection and |r_g| is under the depth gate.
@@ -73,7 +74,8 @@ class Linearisation(NamedTuple):
     cost: torch.Tensor  # [] float64, robust cost over valid source pixels (outliers at the gate's cost)
     inliers: torch.Tensor  # [] pixels that took part
     associated: torch.Tensor  # [] pixels that projected onto valid target pixels
-    residual_sq: torch.Tensor  # [] sum of r_g^2 over inliers, metres^2
+    geometric_sq: torch.Tensor  # [] sum of r_g^2 over inliers, metres^2
+    photometric_sq: torch.Tensor  # [] sum of r_c^2 over inliers
 
 
 class LmState(NamedTuple):
@@ -201,7 +203,7 @@ class Association(NamedTuple):
     normals: torch.Tensor  # [M, 3] the target's unit normals there
     gradients: torch.Tensor  # [M, 2] the target's intensity gradients there
     r_geometric: torch.Tensor  # [M] point-to-plane residual, metres
-    r_photometric: torch.Tensor  # [M] intensity residual
+    r_photometric: torch.Tensor  # [M] intensity residual, less its mean over the inliers
     associated: torch.Tensor  # [M] bool: projected onto the valid target
     inlier: torch.Tensor  # [M] bool: associated and within the depth gate
 
@@ -216,8 +218,10 @@ def associate(pose: torch.Tensor, source: SourcePoints, target: TargetMaps, max_
     normals = F.normalize(sampled[:, NORMAL], dim=-1)
     associated = in_front & (sampled[:, VALID] > VALID_SAMPLE)
     r_geometric = ((points - sampled[:, VERTEX]) * normals).sum(-1)
-    r_photometric = sampled[:, INTENSITY] - source.intensity
     inlier = associated & (r_geometric.abs() < max_depth_diff)
+    difference = sampled[:, INTENSITY] - source.intensity
+    offset = torch.where(inlier, difference, torch.zeros_like(difference)).sum() / inlier.sum().clamp(min=1)
+    r_photometric = difference - offset
     return Association(points, normals, sampled[:, GRADIENT], r_geometric, r_photometric, associated, inlier)
 
 
@@ -247,14 +251,16 @@ def linearise(pose: torch.Tensor, source: SourcePoints, target: TargetMaps, para
     j_photometric = photometric_jacobian(pair.points, pair.gradients, target.intrinsics) / params.color_sigma
     rows = torch.cat([j_geometric * root_w_geometric[:, None], j_photometric * root_w_photometric[:, None]]).double()
     residuals = torch.cat([e_geometric * root_w_geometric, e_photometric * root_w_photometric]).double()
-    residual_sq = torch.where(pair.inlier, pair.r_geometric * pair.r_geometric, zero).sum()
+    geometric_sq = torch.where(pair.inlier, pair.r_geometric * pair.r_geometric, zero).sum()
+    photometric_sq = torch.where(pair.inlier, pair.r_photometric * pair.r_photometric, zero).sum()
     return Linearisation(
         rows.T @ rows,  # [6, 6]
         rows.T @ residuals,  # [6]
         robust_cost(pair, source.valid, params),
         pair.inlier.sum(),
         pair.associated.sum(),
-        residual_sq,
+        geometric_sq,
+        photometric_sq,
     )
 
 
@@ -280,6 +286,7 @@ def lm_start(pose: torch.Tensor) -> LmState:
         torch.full((), float("inf"), dtype=torch.float64, device=pose.device),
         count,
         count,
+        zero.float(),
         zero.float(),
     )
     return LmState(pose, pose, torch.full_like(zero, INITIAL_DAMPING), fit)

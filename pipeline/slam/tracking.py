@@ -63,7 +63,7 @@ def track_aligned(
     residual, metres^2, over its inliers)."""
     aligned = aligner(gaussians, frame, c2w_init)
     if refine.config.iters == 0:
-        return TrackResult(aligned.c2w, aligned.residual_sq, aligned.coverage, aligned.failure)
+        return TrackResult(aligned.c2w, aligned.geometric_sq, aligned.coverage, aligned.failure)
     return replace(track(gaussians, frame, aligned.c2w, refine), failure=aligned.failure)
 
 
