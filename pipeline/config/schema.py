@@ -62,7 +62,7 @@ class TrackingConfig:
     align_min_inliers: float = 0.5  # align: fewer associated pixels within the gate than this fraction fails
     align_min_conditioning: float = 1e-4  # align: a smaller eigenvalue ratio of the scaled normal equations fails
     align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
-    align_max_intensity_rms: float = 0.15  # align: a larger RMS intensity residual fails
+    align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
     align_recovery_iters: int = 30  # align: coarsest-level iterations of the one recovery attempt
 
 

@@ -67,8 +67,7 @@ def halve_depth(depth: torch.Tensor, focal: torch.Tensor) -> torch.Tensor:
 
 def halve_intrinsics(intrinsics: torch.Tensor) -> torch.Tensor:
     """[3, 3] -> the intrinsics of the half-size image (fx, fy, cx, cy halved)."""
-    scale = torch.tensor([0.5, 0.5, 1.0], dtype=intrinsics.dtype, device=intrinsics.device)
-    return intrinsics * scale[:, None]
+    return torch.cat([intrinsics[:2] * 0.5, intrinsics[2:]])  # no host-to-device copy: capturable
 
 
 def check_pyramid_fits(levels: int, height: int, width: int) -> None:
