@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer
+#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.
 set -uo pipefail
@@ -37,6 +37,9 @@ for part in "$@"; do
              done ;;
     syncs) python3 bench/sync_points.py --out "$out" --preset tiny --frames 30 2>&1 | grep -v Warning | tail -n 40 ;;
     costs) python3 bench/iteration_costs.py --out "$out" 2>&1 | grep -v "^gsplatam" | tail -n 45 ;;
+    tracker) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny,small --variants adam,align,align-refine --stem tracker
+             bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --variants adam --stem tracker_base
+             python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
     mapping) bench synthetic --presets tiny --variants default,views2,views3,selective-adam --stem mapping_options ;;

@@ -124,3 +124,35 @@ def project(points: torch.Tensor, w2c: torch.Tensor, intrinsics: torch.Tensor) -
         dim=-1,
     )
     return uv, z
+
+
+def skew(vector: torch.Tensor) -> torch.Tensor:
+    """[..., 3] -> the cross-product matrix [..., 3, 3]: skew(a) @ b = a x b."""
+    x, y, z = vector.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).unflatten(-1, (3, 3))
+
+
+def se3_exp(twist: torch.Tensor) -> torch.Tensor:
+    """Twist [6] (rotation vector in radians, then translation in metres) -> rigid [4, 4].
+
+    The exponential map of se(3): R = I + a W + b W^2, t = (I + b W + c W^2) v with W = skew(w),
+    a = sin(th) / th, b = (1 - cos(th)) / th^2, c = (th - sin(th)) / th^3, th = |w|; their
+    Taylor series near th = 0, chosen on the device. Call it in float64: b and c cancel badly
+    in float32 for small angles.
+    """
+    omega, v = twist[:3], twist[3:]
+    theta_sq = (omega * omega).sum()
+    small = theta_sq < 1e-6
+    theta = torch.where(small, torch.ones_like(theta_sq), theta_sq).sqrt()
+    sin, cos = torch.sin(theta), torch.cos(theta)
+    a = torch.where(small, 1 - theta_sq / 6, sin / theta)
+    b = torch.where(small, 0.5 - theta_sq / 24, (1 - cos) / theta**2)
+    c = torch.where(small, 1 / 6 - theta_sq / 120, (theta - sin) / theta**3)
+    w = skew(omega)
+    w_sq = w @ w
+    eye = torch.eye(4, dtype=twist.dtype, device=twist.device)
+    rotation = eye[:3, :3] + a * w + b * w_sq
+    translation = (eye[:3, :3] + b * w + c * w_sq) @ v
+    top = torch.cat([rotation, translation[:, None]], dim=1)
+    return torch.cat([top, eye[3:]], dim=0)

@@ -37,12 +37,16 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "views2": ("mapping.views_per_step=2",),
     "views3": ("mapping.views_per_step=3",),
     "selective-adam": ("mapping.optimizer=selective_adam",),
+    "adam": ("tracking.method=adam",),  # SplaTAM's tracker, whatever the preset's default
+    "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
+    "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
 }
 
 
 # Generated sequences by name; any other sequence is a dataset folder.
 SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
     "synthetic": (),  # the Replica-like room, 1200x680 on a GPU
+    "synthetic-fast": ("synthetic.speed=1.0",),  # the same room, the camera 3.3x faster (1 m/s)
     "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
         "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",
         "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",

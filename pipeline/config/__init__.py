@@ -11,6 +11,7 @@ from pipeline.config.loading import (
 )
 from pipeline.config.schema import (
     DATASET_DEFAULTS,
+    PRESET_TRACKING,
     PRESETS,
     Config,
     DatasetConfig,
@@ -33,12 +34,14 @@ from pipeline.config.schema import (
     Switch,
     SyntheticConfig,
     TrackingConfig,
+    TrackingMethod,
     ViewerConfig,
 )
 
 __all__ = [
-    "DATASET_DEFAULTS", "PRESETS", "Config", "DatasetConfig", "DatasetFormat", "DensifyConfig", "GaussianConfig",
-    "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse",
-    "RenderBackend", "RenderConfig", "RunConfig", "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "ViewerConfig",
+    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "Config", "DatasetConfig", "DatasetFormat", "DensifyConfig",
+    "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MapOptimizerKind",
+    "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig", "Schedule", "SlamConfig", "Switch",
+    "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
     "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

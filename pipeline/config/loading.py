@@ -11,7 +11,7 @@ from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from pipeline.config.schema import DATASET_DEFAULTS, PRESETS, Config
+from pipeline.config.schema import DATASET_DEFAULTS, PRESET_TRACKING, PRESETS, Config
 from pipeline.errors import UserError
 
 
@@ -22,7 +22,7 @@ def preset_config(name: str) -> Config:
     base = Config(preset=name)
     return replace(
         base,
-        tracking=replace(base.tracking, iters=track),
+        tracking=replace(base.tracking, iters=track, method=PRESET_TRACKING[name]),
         mapping=replace(base.mapping, iters=mapping, window=window),
         keyframes=replace(base.keyframes, every=every),
     )
@@ -153,6 +153,25 @@ def with_dataset_defaults(config: Config, dataset_format: str) -> Config:
 def validate(config: Config) -> None:
     checks = [
         (config.tracking.iters >= 0, "tracking.iters must be >= 0"),
+        (config.tracking.refine_iters >= 0, "tracking.refine_iters must be >= 0"),
+        (
+            1 <= len(config.tracking.align_iters) <= 6 and min(config.tracking.align_iters, default=0) >= 1,
+            "tracking.align_iters takes 1 to 6 iteration counts (one per pyramid level, coarse to fine), each >= 1",
+        ),
+        (
+            min(config.tracking.align_depth_sigma_m, config.tracking.align_color_sigma) > 0,
+            "tracking.align_depth_sigma_m and align_color_sigma must be > 0",
+        ),
+        (config.tracking.align_photometric_weight >= 0, "tracking.align_photometric_weight must be >= 0"),
+        (0 <= config.tracking.align_min_silhouette < 1, "tracking.align_min_silhouette must be in [0, 1)"),
+        (config.tracking.align_max_depth_diff_m > 0, "tracking.align_max_depth_diff_m must be > 0"),
+        (0 <= config.tracking.align_min_inliers <= 1, "tracking.align_min_inliers must be in [0, 1]"),
+        (0 <= config.tracking.align_min_conditioning < 1, "tracking.align_min_conditioning must be in [0, 1)"),
+        (
+            min(config.tracking.align_max_residual_m, config.tracking.align_max_intensity_rms) > 0,
+            "tracking.align_max_residual_m and align_max_intensity_rms must be > 0",
+        ),
+        (config.tracking.align_recovery_iters >= 0, "tracking.align_recovery_iters must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),
         (config.slam.max_lead >= 0, "slam.max_lead must be >= 0"),

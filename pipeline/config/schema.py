@@ -12,6 +12,7 @@ RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
+TrackingMethod = Literal["adam", "align"]
 
 
 @dataclass(frozen=True)
@@ -45,12 +46,25 @@ class SyntheticConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    iters: int = 40
+    method: TrackingMethod = "adam"  # adam: SplaTAM's rendering loss; align: dense RGB-D alignment to one render
+    iters: int = 40  # adam's iterations
     lr_rotation: float = 0.0  # 0: by dataset (0.0004 Replica-like, 0.002 TUM)
     lr_translation: float = 0.002
     silhouette_threshold: float = 0.99
     lost_translation_m: float = 0.3  # a jump beyond this from the initial guess marks tracking lost
     lost_coverage: float = 0.05  # fewer pixels than this fraction above the threshold marks it lost
+    refine_iters: int = 0  # align: then this many of adam's iterations from the aligned pose
+    align_iters: tuple[int, ...] = (10, 6, 4)  # align: iterations per pyramid level, coarse to fine (one level each)
+    align_depth_sigma_m: float = 0.01  # align: Huber scale of the point-to-plane residual
+    align_color_sigma: float = 0.05  # align: Huber scale of the intensity residual (intensity in [0, 1])
+    align_photometric_weight: float = 0.1  # align: weight of the photometric term against the geometric one
+    align_min_silhouette: float = 0.5  # align: render pixels of less accumulated opacity are not aligned to
+    align_max_depth_diff_m: float = 0.05  # align: gate on the point-to-plane residual at full size, x2 per level
+    align_min_inliers: float = 0.5  # align: fewer associated pixels within the gate than this fraction fails
+    align_min_conditioning: float = 1e-4  # align: a smaller eigenvalue ratio of the scaled normal equations fails
+    align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
+    align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
+    align_recovery_iters: int = 30  # align: coarsest-level iterations of the one recovery attempt
 
 
 @dataclass(frozen=True)
@@ -185,6 +199,9 @@ PRESETS: dict[str, tuple[int, int, int, int]] = {
     "tiny": (4, 6, 6, 5),
     "tum": (200, 30, 20, 5),
 }
+
+# The tracking method of each preset: the one place to flip after measuring (bench part `tracker`).
+PRESET_TRACKING: dict[str, TrackingMethod] = {"base": "adam", "small": "align", "tiny": "align", "tum": "adam"}
 
 # Values that SplaTAM tunes per dataset family.
 DATASET_DEFAULTS: dict[str, dict[str, float]] = {

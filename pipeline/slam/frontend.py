@@ -65,6 +65,7 @@ class TrackingFrontend:
         its pose is the identity). Reads the frame's tracking scalars once, to judge it."""
         started = time.perf_counter()
         with self.clock.stage("tracking"):
+            failure = ""
             if latest is None:
                 c2w = c2w_init = torch.eye(4, device=self.device)
                 loss, coverage = torch.zeros((), device=self.device), torch.ones((), device=self.device)
@@ -72,13 +73,14 @@ class TrackingFrontend:
                 c2w_init = self._initial_pose(frame)
                 tracked = self.tracker(latest.for_current_stream(), frame, c2w_init)
                 c2w, loss, coverage = tracked.c2w.detach(), tracked.best_loss, tracked.coverage
+                failure = tracked.failure
             self.poses.append(c2w)
             self.last_prior = frame.c2w_prior
         ready = None
         if frame.depth.is_cuda:
             ready = torch.cuda.Event()
             ready.record()
-        result = self._judge(frame, c2w, c2w_init, loss, coverage)
+        result = self._judge(frame, c2w, c2w_init, loss, coverage, failure)
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
         if frame.received_at is not None:
             result.received_at = frame.received_at
@@ -95,9 +97,16 @@ class TrackingFrontend:
         return poses[-1] if len(poses) < 2 else constant_velocity(poses[-2], poses[-1])
 
     def _judge(
-        self, frame: DeviceFrame, c2w: torch.Tensor, c2w_init: torch.Tensor, loss: torch.Tensor, coverage: torch.Tensor
+        self,
+        frame: DeviceFrame,
+        c2w: torch.Tensor,
+        c2w_init: torch.Tensor,
+        loss: torch.Tensor,
+        coverage: torch.Tensor,
+        failure: str,
     ) -> FrameResult:
-        """Read the frame's device scalars once and judge whether tracking held."""
+        """Read the frame's device scalars once and judge whether tracking held (`failure`: the
+        tracking method's own verdict, e.g. the alignment's solve)."""
         valid = float((frame.depth > 0).sum())
         cov = float(coverage)
         per_pixel = float(loss) / max(cov * valid, 1.0)
@@ -106,6 +115,8 @@ class TrackingFrontend:
         lost, warning = "", ""
         if not math.isfinite(per_pixel) and tracked:
             lost = "tracking loss is not finite"
+        elif failure:
+            lost = failure
         elif jump > self.config.lost_translation_m:
             lost = f"pose jumped {jump:.3f} m from its prediction"
         elif (

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.slam.losses import ssim
+from pipeline.slam.rgbd_alignment import AlignIteration, lm_iteration
 
 
 def tracking_loss(
@@ -56,14 +57,16 @@ def mapping_loss(
 class SlamKernels:
     tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     mapping_loss: Callable[..., torch.Tensor]
+    align_iteration: AlignIteration  # one Levenberg-Marquardt iteration of the align tracker (per level)
 
 
 def make_kernels(compiled: bool) -> SlamKernels:
     if not compiled:
-        return SlamKernels(tracking_loss, mapping_loss)
+        return SlamKernels(tracking_loss, mapping_loss, lm_iteration)
     return SlamKernels(
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),
+        torch.compile(lm_iteration, dynamic=False),
     )
 
 

@@ -15,7 +15,7 @@ class FrameResult:
     seconds: dict[str, float]  # tracking, densify (with keyframe selection), mapping, total (their sum)
     gaussians: int  # in the map after this frame's mapping (or the latest map, when not mapped)
     added: int
-    tracking_loss: float  # per tracked pixel at the chosen pose
+    tracking_loss: float  # per tracked pixel at the chosen pose (adam: its loss; align: squared point-to-plane, m^2)
     coverage: float  # fraction of valid-depth pixels used by tracking
     lost: str = ""  # why the pose is not to be trusted (the frame is then not mapped); empty when it is
     c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host

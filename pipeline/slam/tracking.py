@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Protocol
 
@@ -12,6 +12,7 @@ from pipeline.config import LossConfig, TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.slam.align_tracker import AlignTracker
 from pipeline.slam.kernels import EAGER, SlamKernels
 
 
@@ -30,8 +31,11 @@ class TrackSettings:
 @dataclass
 class TrackResult:
     c2w: torch.Tensor  # [4, 4] the pose with the lowest loss seen
-    best_loss: torch.Tensor  # [] that loss (device tensor; read it at the frame boundary)
-    coverage: torch.Tensor  # [] fraction of valid-depth pixels the map covered at that pose
+    best_loss: (
+        torch.Tensor
+    )  # [] that loss summed over the tracked pixels (device tensor; read it at the frame boundary)
+    coverage: torch.Tensor  # [] fraction of valid-depth pixels tracked at that pose
+    failure: str = ""  # why the method itself judges the pose unsound, if it does (align)
 
 
 class Tracker(Protocol):
@@ -41,8 +45,26 @@ class Tracker(Protocol):
 
 
 def make_tracker(settings: TrackSettings) -> Tracker:
-    """The configured tracking method (SplaTAM's rendering loss optimised by Adam)."""
-    return partial(track, settings=settings)
+    """The configured tracking method: `adam` (SplaTAM's rendering loss optimised by Adam) or
+    `align` (dense RGB-D alignment to one render, then `refine_iters` of adam's iterations)."""
+    config = settings.config
+    if config.method == "adam":
+        return partial(track, settings=settings)
+    aligner = AlignTracker(settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration)
+    refine = replace(settings, config=replace(config, iters=config.refine_iters))
+    return partial(track_aligned, aligner=aligner, refine=refine)
+
+
+def track_aligned(
+    gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, aligner: AlignTracker, refine: TrackSettings
+) -> TrackResult:
+    """Align to one render at camera-to-world `c2w_init` [4, 4], then `refine.config.iters` of
+    adam's iterations from there (none: the loss is the alignment's squared point-to-plane
+    residual, metres^2, over its inliers)."""
+    aligned = aligner(gaussians, frame, c2w_init)
+    if refine.config.iters == 0:
+        return TrackResult(aligned.c2w, aligned.geometric_sq, aligned.coverage, aligned.failure)
+    return replace(track(gaussians, frame, aligned.c2w, refine), failure=aligned.failure)
 
 
 def track(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, settings: TrackSettings) -> TrackResult:

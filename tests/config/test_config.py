@@ -1,8 +1,10 @@
 from __future__ import annotations
 
+import re
+
 import pytest
 
-from pipeline.config import PRESETS, load_config, preset_config, to_toml, with_dataset_defaults
+from pipeline.config import PRESET_TRACKING, PRESETS, load_config, preset_config, to_toml, with_dataset_defaults
 from pipeline.errors import UserError
 
 
@@ -13,6 +15,14 @@ from pipeline.errors import UserError
 def test_presets_have_the_specified_numbers(name: str, numbers: tuple[int, int, int, int]) -> None:
     config = preset_config(name)
     assert (config.tracking.iters, config.mapping.iters, config.mapping.window, config.keyframes.every) == numbers
+
+
+def test_the_tracking_method_follows_the_preset_and_can_be_chosen() -> None:
+    assert {name: preset_config(name).tracking.method for name in PRESETS} == PRESET_TRACKING
+    assert PRESET_TRACKING["tiny"] == PRESET_TRACKING["small"] == "align"
+    assert load_config("tiny", overrides=["tracking.method=adam"]).tracking.method == "adam"
+    config = load_config("base", overrides=["tracking.method=align", "tracking.align_iters=8,4"])
+    assert config.tracking.method == "align" and config.tracking.align_iters == (8, 4)
 
 
 def test_shared_defaults() -> None:
@@ -65,10 +75,17 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["tracking"], "bad --set 'tracking'"),
         (["tracking=3"], "'tracking' is a section"),
         (["mapping.window=1"], "mapping.window must be >= 2"),
+        (["tracking.method=icp"], "bad value for 'tracking.method': 'icp' (choose from adam, align)"),
+        (["tracking.refine_iters=-1"], "tracking.refine_iters must be >= 0"),
+        (["tracking.align_iters=4,0,2"], "tracking.align_iters takes 1 to 6 iteration counts"),
+        (["tracking.align_iters="], "tracking.align_iters takes 1 to 6 iteration counts"),
+        (["tracking.align_color_sigma=0"], "tracking.align_depth_sigma_m and align_color_sigma must be > 0"),
+        (["tracking.align_min_inliers=1.5"], "tracking.align_min_inliers must be in [0, 1]"),
+        (["tracking.align_min_silhouette=1"], "tracking.align_min_silhouette must be in [0, 1)"),
     ],
 )
 def test_bad_overrides_name_the_key(overrides: list[str], message: str) -> None:
-    with pytest.raises(UserError, match=message.replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(UserError, match=re.escape(message)):
         load_config("base", overrides=overrides)
 
 

@@ -235,10 +235,18 @@ def test_separable_ssim_matches_a_direct_2d_window() -> None:
     torch.testing.assert_close(ssim_map(a, b), direct, atol=1e-5, rtol=0)
 
 
-def test_lost_tracking_is_reported_not_silent(replica_seq) -> None:
+@pytest.mark.parametrize(
+    "method, reason",
+    [("adam", "over 10x its running median"), ("align", "pixels fit the map")],
+)
+def test_lost_tracking_is_reported_and_the_frame_not_mapped(replica_seq, method: str, reason: str) -> None:
     """A frame that does not fit the map (another scene's colour, depth doubled) after a few good
-    ones: the tracking loss explodes and the result says so; an impossible jump bound flags too."""
-    config = with_dataset_defaults(load_config("tiny", overrides=["mapping.iters=2"]), "replica")
+    ones: adam's loss explodes, align's solve finds no pixel that fits; the result says so, the
+    frame's pose is kept and the map and keyframes are left as they were. An impossible jump
+    bound flags too."""
+    config = with_dataset_defaults(
+        load_config("tiny", overrides=["mapping.iters=2", f"tracking.method={method}"]), "replica"
+    )
     dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
     frames = [host_frame_tensors(f) for f in dataset.frames()]
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
@@ -253,10 +261,16 @@ def test_lost_tracking_is_reported_not_silent(replica_seq) -> None:
         bad.intrinsics,
         None,
     )
-    result = slam.step(garbage)
-    assert "over 10x its running median" in result.lost
+    means, keyframes = slam.gaussians.means.clone(), len(slam.backend.keyframes)
+    result = slam.step(garbage, is_last=True)
+    assert reason in result.lost and not result.mapped
+    assert result.added == 0 and result.seconds["mapping"] == 0.0
+    assert torch.equal(slam.gaussians.means, means) and len(slam.backend.keyframes) == keyframes
+    assert slam.frames_done == 7 and torch.isfinite(slam.poses[-1]).all()
 
-    jumpy = with_dataset_defaults(load_config("tiny", overrides=["tracking.lost_translation_m=1e-9"]), "replica")
+    jumpy = with_dataset_defaults(
+        load_config("tiny", overrides=["tracking.lost_translation_m=1e-9", f"tracking.method={method}"]), "replica"
+    )
     slam = SplaTAM(jumpy, make_renderer(jumpy.render, jumpy.gaussians, CPU), CPU)
     slam.step(frames[0])
     assert slam.step(frames[1]).lost.startswith("pose jumped")

@@ -1,0 +1,164 @@
+"""The `align` tracking method: render the map once at the predicted pose (no backward pass),
+align the new frame to that render densely (`rgbd_alignment`), judge the solve from its own
+statistics, and try once more before the frame is declared lost."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.config import TrackingConfig
+from pipeline.frame import DeviceFrame
+from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
+from pipeline.slam.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
+from pipeline.slam.rgbd_alignment import (
+    AlignIteration,
+    AlignParams,
+    Linearisation,
+    LmState,
+    SourcePoints,
+    TargetMaps,
+    align,
+    lm_iteration,
+    source_points,
+    target_maps,
+)
+
+MIN_PIXELS = 64  # fewer valid-depth pixels, or fewer inliers, and no pose is estimated
+
+
+@dataclass(frozen=True)
+class AlignResult:
+    c2w: torch.Tensor  # [4, 4] camera-to-world
+    geometric_sq: torch.Tensor  # [] sum of squared point-to-plane residuals over the inliers, metres^2
+    coverage: torch.Tensor  # [] inliers / valid-depth pixels of the frame
+    failure: str  # empty when the solve looks sound, else why not
+
+
+@dataclass(frozen=True)
+class SolveReport:
+    """A solve's statistics on the host (one read per attempt)."""
+
+    valid: int  # valid-depth pixels of the frame
+    associated: int  # of them, projected onto valid render pixels
+    inliers: int  # of those, within the depth gate
+    rms_m: float  # RMS point-to-plane residual of the inliers
+    rms_intensity: float  # RMS intensity residual of the inliers
+    conditioning: float  # smallest / largest eigenvalue of the Jacobi-scaled normal equations
+
+    def failure(self, config: TrackingConfig) -> str:
+        """Empty when the solve looks sound, else the first reason it does not."""
+        if self.valid < MIN_PIXELS:
+            return f"no valid depth to align ({self.valid} pixels)"
+        if self.inliers < MIN_PIXELS:
+            return f"only {self.inliers} pixels fit the map"
+        fraction = self.inliers / max(self.associated, 1)
+        if fraction < config.align_min_inliers:
+            return f"only {fraction:.0%} of the pixels on the map fit it (at least {config.align_min_inliers:.0%})"
+        if self.conditioning < config.align_min_conditioning:
+            return f"the alignment is ill-conditioned (eigenvalue ratio {self.conditioning:.1e})"
+        if self.rms_m > config.align_max_residual_m:
+            return f"point-to-plane residual {100 * self.rms_m:.1f} cm RMS"
+        if self.rms_intensity > config.align_max_intensity_rms:
+            return f"intensity residual {self.rms_intensity:.2f} RMS: the frame's colours do not match the map's"
+        return ""
+
+
+def conditioning(hessian: torch.Tensor) -> float:
+    """Smallest / largest eigenvalue of D^-1/2 H D^-1/2 (D = diag H) for a [6, 6] host tensor:
+    units cancel, so rotation and translation compare; 0 when a direction has no data at all."""
+    diagonal = torch.diagonal(hessian)
+    if not bool((diagonal > 0).all()):
+        return 0.0
+    scale = diagonal.rsqrt()
+    eigenvalues = torch.linalg.eigvalsh(hessian * scale[:, None] * scale[None, :])
+    return float(eigenvalues[0] / eigenvalues[-1])
+
+
+def read_report(fit: Linearisation, valid: torch.Tensor) -> SolveReport:
+    """One device-to-host copy of the solve's statistics; `valid` [M] the frame's valid depth."""
+    counts = torch.stack([valid.sum(), fit.associated, fit.inliers]).double()
+    squares = torch.stack([fit.geometric_sq, fit.photometric_sq]).double()
+    packed = torch.cat([counts, squares, fit.hessian.reshape(-1)]).cpu()
+    valid_n, associated, inliers = (int(x) for x in packed[:3])
+    rms_m, rms_intensity = (float(x) for x in (packed[3:5] / max(inliers, 1)).sqrt())
+    hessian = packed[5:].reshape(6, 6)
+    return SolveReport(valid_n, associated, inliers, rms_m, rms_intensity, conditioning(hessian))
+
+
+class AlignTracker:
+    """One frame's pose by dense alignment to a render of the frozen map at `c2w_init`."""
+
+    def __init__(
+        self,
+        renderer: Renderer,
+        config: TrackingConfig,
+        near: float,
+        far: float,
+        iteration: AlignIteration = lm_iteration,
+    ) -> None:
+        self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
+        levels = len(config.align_iters)
+        self.params = [
+            AlignParams(
+                config.align_depth_sigma_m,
+                config.align_color_sigma,
+                config.align_photometric_weight,
+                config.align_max_depth_diff_m * 2**level,
+            )
+            for level in range(levels)
+        ]  # finest first: the gate widens with a coarser pixel's footprint
+        self.recovery_schedule = (config.align_recovery_iters, *config.align_iters[1:])
+
+    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> AlignResult:
+        check_pyramid_fits(len(self.params), frame.height, frame.width)
+        sources, targets = self.prepare(frame, self._render(gaussians, frame, c2w_init))
+        state = self.solve(sources, targets)
+        report = read_report(state.fit, sources[0].valid)
+        failure = report.failure(self.config)
+        if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
+            # One recovery attempt: more coarse-level iterations widen the basin of convergence.
+            retry = self.solve(sources, targets, self.recovery_schedule)
+            retry_failure = read_report(retry.fit, sources[0].valid).failure(self.config)
+            if retry_failure:
+                failure = f"{failure}; after a recovery attempt: {retry_failure}"
+            else:
+                state, failure = retry, ""
+        return self._result(state, c2w_init, sources[0].valid, failure)
+
+    def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> RenderOutput:
+        camera = Camera(invert_pose(c2w_init), frame.intrinsics, frame.width, frame.height, self.near, self.far)
+        with torch.no_grad():
+            return self.renderer(gaussians, camera)
+
+    def prepare(self, frame: DeviceFrame, rendered: RenderOutput) -> tuple[list[SourcePoints], list[TargetMaps]]:
+        """The frame's pyramid as points in its own camera and the render's as maps, finest first.
+
+        The render counts where its silhouette passes `align_min_silhouette`; its intensity is
+        normalised by the silhouette, as the renderer normalises depth."""
+        levels = len(self.params)
+        sources = [
+            source_points(level)
+            for level in rgbd_pyramid(intensity(frame.color), frame.depth, frame.intrinsics, levels)
+        ]
+        threshold = self.config.align_min_silhouette
+        depth = torch.where(rendered.silhouette > threshold, rendered.depth, torch.zeros_like(rendered.depth))
+        gray = intensity(rendered.color) / rendered.silhouette.clamp(min=threshold)
+        targets = [target_maps(level) for level in rgbd_pyramid(gray, depth, frame.intrinsics, levels)]
+        return sources, targets
+
+    def solve(
+        self, sources: list[SourcePoints], targets: list[TargetMaps], schedule: tuple[int, ...] | None = None
+    ) -> LmState:
+        """The coarse-to-fine solve (`align_iters`, or `schedule`) from the render's pose."""
+        return align(sources, targets, self.params, schedule or self.config.align_iters, self.iteration)
+
+    def _result(self, state: LmState, c2w_init: torch.Tensor, valid: torch.Tensor, failure: str) -> AlignResult:
+        """The camera-to-world of the solve, re-orthonormalised (the prediction if it is not finite)."""
+        c2w = c2w_init @ state.pose.to(c2w_init.dtype)  # the motion maps this camera into the render's
+        c2w = pose_matrix(rotmat_to_quat(c2w[:3, :3]), c2w[:3, 3])  # exactly rigid: no drift in later products
+        c2w = torch.where(torch.isfinite(c2w).all(), c2w, c2w_init)
+        coverage = state.fit.inliers / valid.sum().clamp(min=1)
+        return AlignResult(c2w, state.fit.geometric_sq, coverage, failure)
