@@ -40,6 +40,14 @@ for part in "$@"; do
     tracker) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny,small --variants adam,align,align-refine --stem tracker
              bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --variants adam --stem tracker_base
              python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    tracker-tiny) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny --set synthetic.frames=100 \
+                    --variants adam,align,adam-overlapped,align-overlapped --stem tracker_tiny ;;
+    tracker-small) bench synthetic synthetic-fast synthetic-tum "$tum" --presets small --set synthetic.frames=100 \
+                     --variants adam,align,align-overlapped --stem tracker_small ;;
+    tracker-base) bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --set synthetic.frames=100 \
+                    --variants adam --stem tracker_base ;;
+    align-cost) python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    spread) bench synthetic --presets tiny --set synthetic.frames=100 --variants adam,align-overlapped --repeats 3 --stem spread_tiny ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
     mapping) bench synthetic --presets tiny --variants default,views2,views3,selective-adam --stem mapping_options ;;

@@ -40,6 +40,8 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "adam": ("tracking.method=adam",),  # SplaTAM's tracker, whatever the preset's default
     "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
     "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
+    "adam-overlapped": ("tracking.method=adam", "slam.schedule=overlapped"),
+    "align-overlapped": ("tracking.method=align", "slam.schedule=overlapped"),
 }
 
 
