@@ -14,7 +14,7 @@ trap 'exit 143' TERM INT
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
 tum=.data/tum_fr1_xyz_37
-export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit being measured: the device copy's git is stale}
+export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
 bench() { python3 -m pipeline bench --quiet --out "$out" --runs /tmp/runs "$@" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
 for part in "$@"; do
