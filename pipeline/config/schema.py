@@ -65,6 +65,7 @@ class TrackingConfig:
     align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
     align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
     align_recovery_iters: int = 30  # align: coarsest-level iterations of the one recovery attempt
+    align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)
 
 
 @dataclass(frozen=True)

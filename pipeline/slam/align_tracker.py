@@ -4,7 +4,9 @@ statistics, and try once more before the frame is declared lost."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 
@@ -12,6 +14,7 @@ from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
+from pipeline.slam.cuda_graphs import GraphCache
 from pipeline.slam.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
 from pipeline.slam.rgbd_alignment import (
     AlignIteration,
@@ -98,7 +101,9 @@ class AlignTracker:
         near: float,
         far: float,
         iteration: AlignIteration = lm_iteration,
+        capture: bool = False,
     ) -> None:
+        """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py)."""
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
         levels = len(config.align_iters)
         self.params = [
@@ -111,22 +116,44 @@ class AlignTracker:
             for level in range(levels)
         ]  # finest first: the gate widens with a coarser pixel's footprint
         self.recovery_schedule = (config.align_recovery_iters, *config.align_iters[1:])
+        solve = partial(self.solve_images, schedule=config.align_iters)
+        recover = partial(self.solve_images, schedule=self.recovery_schedule)
+        self._solve: Callable[..., tuple[LmState, torch.Tensor]] = GraphCache(solve) if capture else solve
+        self._recover: Callable[..., tuple[LmState, torch.Tensor]] = GraphCache(recover) if capture else recover
 
     def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> AlignResult:
         check_pyramid_fits(len(self.params), frame.height, frame.width)
-        sources, targets = self.prepare(frame, self._render(gaussians, frame, c2w_init))
-        state = self.solve(sources, targets)
-        report = read_report(state.fit, sources[0].valid)
+        rendered = self._render(gaussians, frame, c2w_init)
+        images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
+        state, valid = self._solve(*images)
+        report = read_report(state.fit, valid)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
             # One recovery attempt: more coarse-level iterations widen the basin of convergence.
-            retry = self.solve(sources, targets, self.recovery_schedule)
-            retry_failure = read_report(retry.fit, sources[0].valid).failure(self.config)
+            retry, _ = self._recover(*images)
+            retry_failure = read_report(retry.fit, valid).failure(self.config)
             if retry_failure:
                 failure = f"{failure}; after a recovery attempt: {retry_failure}"
             else:
                 state, failure = retry, ""
-        return self._result(state, c2w_init, sources[0].valid, failure)
+        return self._result(state, c2w_init, valid, failure)
+
+    def solve_images(
+        self,
+        color: torch.Tensor,
+        depth: torch.Tensor,
+        intrinsics: torch.Tensor,
+        render_color: torch.Tensor,
+        render_depth: torch.Tensor,
+        silhouette: torch.Tensor,
+        schedule: tuple[int, ...],
+    ) -> tuple[LmState, torch.Tensor]:
+        """The frame (colour [H, W, 3], depth [H, W] metres, intrinsics [3, 3]) aligned to the
+        render (colour, depth, silhouette at the frame's size) -> (the solve's last state, the
+        frame's valid-depth mask [H x W] at full size). Tensors in and out only, so that it can
+        be recorded as a CUDA graph."""
+        sources, targets = self.prepare_images(color, depth, intrinsics, render_color, render_depth, silhouette)
+        return self.solve(sources, targets, schedule), sources[0].valid
 
     def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> RenderOutput:
         camera = Camera(invert_pose(c2w_init), frame.intrinsics, frame.width, frame.height, self.near, self.far)
@@ -134,19 +161,29 @@ class AlignTracker:
             return self.renderer(gaussians, camera)
 
     def prepare(self, frame: DeviceFrame, rendered: RenderOutput) -> tuple[list[SourcePoints], list[TargetMaps]]:
-        """The frame's pyramid as points in its own camera and the render's as maps, finest first.
+        """The frame's pyramid as points in its own camera and the render's as maps, finest first."""
+        return self.prepare_images(
+            frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette
+        )
 
-        The render counts where its silhouette passes `align_min_silhouette`; its intensity is
-        normalised by the silhouette, as the renderer normalises depth."""
+    def prepare_images(
+        self,
+        color: torch.Tensor,
+        depth: torch.Tensor,
+        intrinsics: torch.Tensor,
+        render_color: torch.Tensor,
+        render_depth: torch.Tensor,
+        silhouette: torch.Tensor,
+    ) -> tuple[list[SourcePoints], list[TargetMaps]]:
+        """`prepare` on the images. The render counts where its silhouette passes
+        `align_min_silhouette`; its intensity is normalised by the silhouette, as the renderer
+        normalises depth."""
         levels = len(self.params)
-        sources = [
-            source_points(level)
-            for level in rgbd_pyramid(intensity(frame.color), frame.depth, frame.intrinsics, levels)
-        ]
+        sources = [source_points(level) for level in rgbd_pyramid(intensity(color), depth, intrinsics, levels)]
         threshold = self.config.align_min_silhouette
-        depth = torch.where(rendered.silhouette > threshold, rendered.depth, torch.zeros_like(rendered.depth))
-        gray = intensity(rendered.color) / rendered.silhouette.clamp(min=threshold)
-        targets = [target_maps(level) for level in rgbd_pyramid(gray, depth, frame.intrinsics, levels)]
+        target_depth = torch.where(silhouette > threshold, render_depth, torch.zeros_like(render_depth))
+        gray = intensity(render_color) / silhouette.clamp(min=threshold)
+        targets = [target_maps(level) for level in rgbd_pyramid(gray, target_depth, intrinsics, levels)]
         return sources, targets
 
     def solve(

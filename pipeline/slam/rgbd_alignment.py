@@ -285,11 +285,13 @@ def lm_start(pose: torch.Tensor) -> LmState:
         torch.zeros(6, dtype=torch.float64, device=pose.device),
         torch.full((), float("inf"), dtype=torch.float64, device=pose.device),
         count,
-        count,
+        count.clone(),
         zero.float(),
         zero.float(),
     )
-    return LmState(pose, pose, torch.full_like(zero, INITIAL_DAMPING), fit)
+    # Distinct tensors: the compiled iteration guards on aliasing, and shared inputs would compile it
+    # once more per level (eight compilations then stop compiling and run it eager).
+    return LmState(pose, pose.clone(), torch.full_like(zero, INITIAL_DAMPING), fit)
 
 
 def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, params: AlignParams) -> LmState:

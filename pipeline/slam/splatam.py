@@ -32,7 +32,8 @@ class SplaTAM:
         compiled = config.run.compile == "on" or (config.run.compile == "auto" and device.type == "cuda")
         kernels = make_kernels(compiled)
         near, far = config.render.near, config.render.far
-        tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels))
+        cuda = device.type == "cuda"
+        tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
         self.frontend = TrackingFrontend(tracker, config.tracking, device)
         views = make_views_renderer(config.render, config.gaussians, device)
         map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)

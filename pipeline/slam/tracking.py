@@ -26,6 +26,7 @@ class TrackSettings:
     near: float  # metres
     far: float
     kernels: SlamKernels = EAGER
+    cuda: bool = False  # the frames are on a CUDA device (the align solve can then be graph-recorded)
 
 
 @dataclass
@@ -50,7 +51,10 @@ def make_tracker(settings: TrackSettings) -> Tracker:
     config = settings.config
     if config.method == "adam":
         return partial(track, settings=settings)
-    aligner = AlignTracker(settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration)
+    capture = config.align_graph == "on" or (config.align_graph == "auto" and settings.cuda)
+    aligner = AlignTracker(
+        settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration, capture
+    )
     refine = replace(settings, config=replace(config, iters=config.refine_iters))
     return partial(track_aligned, aligner=aligner, refine=refine)
 
