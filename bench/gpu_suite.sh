@@ -11,7 +11,7 @@ out=$(mktemp -d)
 mkdir -p "$dest"
 trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
 trap 'exit 143' TERM INT
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl 2>/dev/null) || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
 tum=.data/tum_fr1_xyz_37
 export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
@@ -48,6 +48,8 @@ for part in "$@"; do
                     --variants adam --stem tracker_base ;;
     align-cost) python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     spread) bench synthetic --presets tiny --set synthetic.frames=100 --variants adam,align-overlapped --repeats 3 --stem spread_tiny ;;
+    live-age) for size in 256x192 640x480; do python3 bench/live_latency.py --out "$out" --size $size --seconds 60 2>&1 | tail -n 4; done ;;
+    soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
     mapping) bench synthetic --presets tiny --variants default,views2,views3,selective-adam --stem mapping_options ;;

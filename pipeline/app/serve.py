@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from pipeline.app.report import timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
@@ -91,9 +92,15 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
             "ate_rmse_cm": live_ate_cm(results),
+            "gpu_memory_gb": _gpu_memory_gb(session.device),
         }
 
     return read
+
+
+def _gpu_memory_gb(device: torch.device) -> float | None:
+    """Memory held by tensors on the compute device (the allocator's count: no synchronisation)."""
+    return torch.cuda.memory_allocated(device) / 1e9 if device.type == "cuda" else None
 
 
 def _tracking_state(last: FrameResult | None) -> str:
