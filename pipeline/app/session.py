@@ -19,6 +19,7 @@ from pipeline.app.profiling import all_threads_config, summarise
 from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
 from pipeline.io.outputs.atomic import atomic_write_text
+from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.io.outputs.periodic_save import PeriodicSave
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
@@ -49,6 +50,7 @@ class Session:
     slam: SplaTAM
     source: Source
     sink: ResultSink
+    intrinsics: IntrinsicsRecorder
     saver: PeriodicSave | None = None
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
@@ -56,7 +58,7 @@ class Session:
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
-        return [o for o in (self.saver, self.viewer) if o is not None]
+        return [o for o in (self.intrinsics, self.saver, self.viewer) if o is not None]
 
 
 def open_session(
@@ -88,7 +90,8 @@ def open_session(
     saver = PeriodicSave(run_folder, save_every_s) if save_every_s is not None else None
     viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
-    return Session(config, device, run_folder, slam, source, sink, saver, viewer, services)
+    intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
+    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
 
 
 def graph_of(session: Session) -> Graph:
