@@ -110,17 +110,15 @@ def run_matrix(
 ) -> dict[str, Any]:
     """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
     rows = []
-    for sequence in sequences:
-        for preset in presets:
-            for variant in variants:
-                cell = Cell(sequence, preset, variant)
-                name = f"{Path(sequence).name}_{preset}_{variant}"
-                log.info("bench: %s", name)
-                config = cell_config(cell, base_overrides, runs, name)
-                metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
-                if metrics is None:
-                    raise UserError("benchmark interrupted before its first frame")
-                rows.append(row_of(cell, metrics))
+    cells = [Cell(s, p, v) for s in sequences for p in presets for v in variants]
+    for number, cell in enumerate(cells, start=1):
+        name = f"{Path(cell.sequence).name}_{cell.preset}_{cell.variant}"
+        log.info("bench: cell %d of %d: %s", number, len(cells), name)
+        config = cell_config(cell, base_overrides, runs, name)
+        metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+        if metrics is None:
+            raise UserError("benchmark interrupted before its first frame")
+        rows.append(row_of(cell, metrics))
     add_ratios(rows)
     device = resolve_device("auto")
     return {

@@ -189,7 +189,7 @@ def _config_from(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from pipeline.app.report import format_table
+    from pipeline.app.report import files_and_next_steps, format_table
     from pipeline.app.run import run_slam
 
     config = _config_from(args)
@@ -205,7 +205,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if result.metrics is None:
         return 0
     print(format_table(result.metrics))
-    print(f"outputs: {result.folder.path}/ (metrics.json, frames.csv, trajectory.txt, map.ply, checkpoint.safetensors)")
+    print(files_and_next_steps(result.folder.path))
     return 0
 
 
@@ -282,13 +282,15 @@ def live_source(spec: str, config: Config) -> Source:
 
 
 def _serve_live(spec: str, config: Config, progress: bool) -> int:
+    from pipeline.app.report import files_and_next_steps
     from pipeline.app.serve import serve
 
     source = live_source(spec, config)
     log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
     result = serve(config, source, progress=progress)
     if result.metrics is not None:
-        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians: {result.folder.path}/")
+        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians")
+        print(files_and_next_steps(result.folder.path))
     return 0
 
 

@@ -7,6 +7,8 @@ endpoint on localhost.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -15,22 +17,20 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from pipeline.app.report import timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
+from pipeline.io.live.recording import RecordingSource
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.status_http import serve_status
-from pipeline.metrics import absolute_trajectory_error
 from pipeline.runtime import Graph
-from pipeline.slam.splatam import FrameResult
 from pipeline.source import Source
+from pipeline.stages.sinks import ResultSink, ate_so_far_cm, recent_fps
 
 log = logging.getLogger("gsplatam")
 
-FPS_WINDOW = 10  # frames over which the status endpoint's fps is measured
+BAR_EVERY_S = 1.0  # the progress bar's live counters are refreshed this often
 
 
 @dataclass
@@ -39,25 +39,12 @@ class ServeResult:
     metrics: dict[str, Any] | None  # None when no frame was processed
 
 
-def live_ate_cm(results: list[FrameResult]) -> float | None:
-    """ATE RMSE (cm) of the frames that came with a reference pose (NeRFCapture's device pose
-    when live.device_pose = groundtruth); None with fewer than 3."""
-    pairs = [(r.c2w, r.c2w_gt) for r in results if r.c2w_gt is not None]
-    if len(pairs) < 3:
-        return None
-    estimated = np.stack([e.double().numpy() for e, _ in pairs])
-    reference = np.stack([g.double().numpy() for _, g in pairs])
-    return 100 * absolute_trajectory_error(estimated, reference).rmse_m
-
-
 def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
     source, sink = session.source, session.sink
 
     def read() -> dict[str, Any]:
         results, arrivals = sink.results, sink.arrivals
-        recent = arrivals[-FPS_WINDOW:]
-        fps = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
         source_queue = graph.queues.get("source")
         last = results[-1] if results else None
         return {
@@ -65,16 +52,27 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             **vars(source.counters),
             "processed": len(results),
             "dropped": source_queue.dropped if source_queue is not None else 0,
-            "fps": fps,
+            "fps": recent_fps(arrivals),
             "gaussians": last.gaussians if last else 0,
             "tracking": "waiting" if last is None else ("lost: " + last.lost if last.lost else "ok"),
             "lost_frames": sink.lost_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
-            "ate_rmse_cm": live_ate_cm(results),
+            "ate_rmse_cm": ate_so_far_cm(results),
         }
 
     return read
+
+
+async def status_on_bar(sink: ResultSink, read: Callable[[], dict[str, Any]], stop: asyncio.Event) -> None:
+    """A runtime service: the daemon's counters on the progress bar, every BAR_EVERY_S, until `stop`."""
+    while not stop.is_set():
+        status = read()
+        age = status["seconds_since_last_frame"]
+        fields = {k: status[k] for k in ("received", "processed", "dropped")}
+        sink.show(fields | {"age": "-" if age is None else f"{age:.1f}s"})
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
 
 
 def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
@@ -82,14 +80,21 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
     device = resolve_device(config.run.device)
     config = complete_config(config, device, "tum")  # a phone's depth is a real sensor's, as TUM's
     folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
+    recording = RecordingSource(source, folder / "recording") if config.live.record else None
+    source = recording or source
     session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
 
     def add_status(graph: Graph) -> None:
+        read = status_reader(session, graph)
+        graph.services.append(partial(status_on_bar, session.sink, read))
         if config.live.status_port:
-            read = status_reader(session, graph)
             graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
 
-    report = execute_session(session, on_graph=add_status)
+    try:
+        report = execute_session(session, on_graph=add_status)
+    finally:
+        if recording is not None:
+            recording.close()
     slam, sink = session.slam, session.sink
     if slam.state.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
@@ -107,7 +112,7 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "versions": versions(),
         "runtime": report.summary(),
         "time": timing_summary(sink.results, report, sink.arrivals),
-        "ate_rmse_cm": live_ate_cm(sink.results),
+        "ate_rmse_cm": ate_so_far_cm(sink.results),
     }
     session.folder.write_metrics(metrics)
     return ServeResult(session.folder, metrics)
