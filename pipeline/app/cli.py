@@ -359,34 +359,9 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    import threading
+    from pipeline.app.view import view_saved_map
 
-    from pipeline.io.outputs.ply import read_ply
-    from pipeline.io.trajectory import read_tum_trajectory
-    from pipeline.io.ui.viewer import Viewer
-    from pipeline.io.ui.viewer_feed import map_view
-
-    path = Path(args.path)
-    ply = path / "map.ply" if path.is_dir() else path
-    if not ply.is_file():
-        raise UserError(f"no map to show: {ply} does not exist")
-    gaussians = read_ply(ply)
-    viewer = Viewer(args.viewer_host or "127.0.0.1", args.viewer_port or 8080, f"gsplatam: {ply}", live=False)
-    viewer.show_map(map_view(gaussians))
-    trajectory = path / "trajectory.txt"
-    if path.is_dir() and trajectory.is_file():
-        poses = read_tum_trajectory(trajectory)[1]
-        viewer.show_trajectory(poses)
-        if len(poses):
-            viewer.look_from(poses[0])
-    viewer.stats.content = f"{len(gaussians):,} Gaussians from {ply}"
-    print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)")
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass  # the way to quit
-    finally:
-        viewer.close()
+    view_saved_map(Path(args.path), args.open3d, args.viewer_host or "127.0.0.1", args.viewer_port or 8080)
     return 0
 
 

@@ -122,3 +122,13 @@ def files_and_next_steps(folder: Path) -> str:
     if (folder / "recording" / "rgb.txt").is_file():
         lines.append(f"  gsplatam run {folder}/recording   # the live session again, offline")
     return "\n".join(lines)
+
+
+def run_summary(frames: int, gaussians: int, ate_cm: float | None, psnr_db: float | None) -> str:
+    """One markdown line for the viewer at the end of a run."""
+    parts = [f"**run finished**: {frames} frames, {gaussians:,} Gaussians"]
+    if ate_cm is not None:
+        parts.append(f"ATE RMSE {ate_cm:.2f} cm")
+    if psnr_db is not None:
+        parts.append(f"PSNR {psnr_db:.1f} dB")
+    return ", ".join(parts)

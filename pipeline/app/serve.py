@@ -17,14 +17,14 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from pipeline.app.report import timing_summary, versions
+from pipeline.app.report import run_summary, timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
 from pipeline.io.live.recording import RecordingSource
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.status_http import serve_status
-from pipeline.runtime import Graph
+from pipeline.runtime import Graph, RuntimeReport
 from pipeline.source import Source
 from pipeline.stages.sinks import ResultSink, ate_so_far_cm, recent_fps
 
@@ -92,10 +92,22 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
 
     try:
         report = execute_session(session, on_graph=add_status)
+        if recording is not None:
+            recording.close()  # complete before the final save, and before the viewer lingers
+        result = _save(session, report)
+        if result.metrics is not None:
+            m = result.metrics
+            session.linger(run_summary(m["frames"], m["gaussians"], m["ate_rmse_cm"], None) + f"\n\nin {folder}")
+        return result
     finally:
         if recording is not None:
             recording.close()
-    slam, sink = session.slam, session.sink
+        session.close()
+
+
+def _save(session: Session, report: RuntimeReport) -> ServeResult:
+    """The final save (map, trajectory, checkpoint) and metrics.json."""
+    config, slam, sink, source = session.config, session.slam, session.sink, session.source
     if slam.state.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
@@ -108,7 +120,7 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "gaussians": len(slam.state.gaussians),
         "lost_frames": sink.lost_frames,
         "counters": vars(source.counters),
-        "device": describe(device, config),
+        "device": describe(session.device, config),
         "versions": versions(),
         "runtime": report.summary(),
         "time": timing_summary(sink.results, report, sink.arrivals),

@@ -55,6 +55,17 @@ class Session:
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
 
+    def linger(self, summary: str) -> None:
+        """After the run: the viewer, if any, keeps the final map up for its watchers (`summary`
+        in markdown on it) until they close it or press Stop."""
+        if self.viewer is not None:
+            self.viewer.linger(summary)
+
+    def close(self) -> None:
+        """Close the viewer (safe to call twice); the rest closes when the graph ends."""
+        if self.viewer is not None:
+            self.viewer.close()
+
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
@@ -110,8 +121,9 @@ def graph_of(session: Session) -> Graph:
 def execute_session(
     session: Session, profile_trace: bool = False, on_graph: Callable[[Graph], None] | None = None
 ) -> RuntimeReport:
-    """Run the session's graph to the end of its source or a stop; sink, saver and viewer are
-    closed whatever happens. `on_graph` sees the graph before it runs (the status endpoint)."""
+    """Run the session's graph to the end of its source or a stop; sink and saver are closed
+    and the viewer shows the final state whatever happens (`Session.close` closes it). `on_graph`
+    sees the graph before it runs (the status endpoint)."""
     graph = graph_of(session)
     if on_graph is not None:
         on_graph(graph)
@@ -124,7 +136,7 @@ def execute_session(
         if session.saver is not None:
             session.saver.close()
         if session.viewer is not None:
-            session.viewer.close()
+            session.viewer.finish()  # the final map on screen; it stays up until Session.close
 
 
 def _profiled(graph: Graph, session: Session) -> RuntimeReport:
