@@ -97,9 +97,9 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
+    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
     sink = ResultSink(run_folder.append_frames, total=total, initial=initial, progress=progress)
     saver = PeriodicSave(run_folder, save_every_s) if save_every_s is not None else None
-    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
     intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
     return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
