@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -15,6 +16,7 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
 from pipeline.io.datasets.loader import open_dataset
+from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
 from pipeline.io.trajectory import read_tum_trajectory
 
 
@@ -125,6 +127,14 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     assert metrics["frames"] == 6 and metrics["frames_this_run"] == 2
     assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 6
     assert len((folder / "frames.csv").read_text().splitlines()) == 1 + 6
+
+    camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
+    assert (camera["width"], camera["height"]) == (64, 48)
+    for fmt, default in EXPORT_FORMATS.items():
+        if fmt == "mesh" and importlib.util.find_spec("open3d") is None:
+            continue  # the mesh extra is absent (tests/io/test_exports.py says so)
+        assert main(["export", str(folder), "--to", fmt]) == 0
+        assert (folder / default).exists(), fmt
 
 
 @pytest.mark.slow

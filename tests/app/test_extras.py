@@ -39,7 +39,7 @@ def _gsplatam_without_extras(*argv: str) -> subprocess.CompletedProcess[str]:
         (["serve", "--record3d", "http://127.0.0.1:9"], "live"),
         (["fake-nerfcapture", "--dataset", "SEQUENCE"], "live"),
         (["run", "SEQUENCE", "--viewer", "--set", "dataset.end=1", "--output", "OUT"], "viewer"),
-        (["view", "SEQUENCE/results"], "viewer"),  # not a map: viser is needed before the file is read
+        (["view", "MAP"], "viewer"),
     ],
 )
 def test_a_missing_extra_is_one_line_naming_its_pip_command(
