@@ -80,7 +80,8 @@ class ResultSink:
         if result.lost:
             self.lost_frames += 1
             log.warning("frame %d: tracking lost: %s", result.index, result.lost)
-        if result.c2w_gt is not None and not self.bar.disable and self.arrivals[-1] - self._ate_at >= ATE_EVERY_S:
+        due = self._ate_cm is None or self.arrivals[-1] - self._ate_at >= ATE_EVERY_S
+        if result.c2w_gt is not None and not self.bar.disable and due:
             self._ate_at = self.arrivals[-1]
             self._ate_cm = ate_so_far_cm(self.results)
         self._set_postfix(refresh=False)
