@@ -10,7 +10,7 @@ import torch
 
 from pipeline.config import load_config
 from pipeline.devices import resolve_device
-from pipeline.errors import DataError
+from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
 from pipeline.io.outputs.exports import FORMATS
 from pipeline.io.outputs.exports.full_ply import write_full_ply
@@ -38,6 +38,8 @@ def export_run(
 ) -> Exported:
     """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: FORMATS[fmt]
     inside the run folder)."""
+    if voxel_m <= 0:
+        raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
     folder = RunFolder.existing(run_dir)
     checkpoint, _ = folder.read_checkpoint()
     target = output or folder.path / FORMATS[fmt]

@@ -226,6 +226,8 @@ def test_export_errors_name_the_folder_or_file(gt_run: Path, tmp_path: Path, cap
     (broken / "intrinsics.json").write_text('{"fx": 1}')
     assert main(["export", str(broken), "--to", "nerfstudio"]) == 2
     assert "intrinsics.json is not a camera description" in capsys.readouterr().err
+    assert main(["export", str(gt_run), "--to", "mesh", "--voxel", "0"]) == 2
+    assert "--voxel must be positive" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_info:
         main(["export", str(gt_run), "--to", "obj"])
     assert exit_info.value.code == 2

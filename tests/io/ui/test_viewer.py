@@ -331,3 +331,24 @@ def test_a_common_3dgs_ply_with_extra_properties_is_viewable(tmp_path: Path) -> 
     (tmp_path / "3dgs.ply").write_bytes(("\n".join(lines) + "\n").encode() + extra.tobytes())
     view = map_view(read_ply(tmp_path / "3dgs.ply"))
     assert np.allclose(view.centers, replace(g).means.numpy(), atol=1e-6)
+
+
+def test_the_web_viewer_takes_a_frame_a_save_and_the_summary_without_a_browser() -> None:
+    from pipeline.io.ui.display import FrameView
+    from pipeline.io.ui.viewer import Viewer
+
+    viewer = Viewer("127.0.0.1", free_port(), "test")
+    try:
+        image = np.zeros((12, 16, 3), np.uint8)
+        poses = np.stack([np.eye(4), np.eye(4)])
+        poses[1, 0, 3] = 0.1
+        k = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+        viewer.show_frame(FrameView(1, poses, k, image, image, image, image, "**frame 1**"))
+        viewer.show_saved("saved 10 Gaussians to map.ply")
+        assert viewer.save_status.content == "saved 10 Gaussians to map.ply"
+        viewer.show_summary("**run finished**")
+        assert viewer.stats.content == "**run finished**" and viewer.clients() == 0
+        viewer.request_stop()  # after the run: closes the viewer, sends no signal
+        assert viewer.stopped.is_set()
+    finally:
+        viewer.close()
