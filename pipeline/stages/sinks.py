@@ -94,7 +94,8 @@ class ResultSink:
 
     def _set_postfix(self, refresh: bool) -> None:
         last = self.results[-1] if self.results else None
-        fields: dict[str, Any] = {"fps": f"{recent_fps(self.arrivals):.1f}"}
+        fps = recent_fps(self.arrivals)
+        fields: dict[str, Any] = {"fps": f"{fps:.1f}" if fps >= 1 else f"{fps:.2f}"}
         if last is not None:
             fields.update(gaussians=f"{last.gaussians:,}", lost=self.lost_frames)
         if self._ate_cm is not None:

@@ -28,6 +28,7 @@ from pipeline.io.ui.display import FrameView, MapView, follow_pose
 log = logging.getLogger("gsplatam")
 
 FRAME_S = 1 / 60  # the window's event loop runs at most this often
+WINDOW_TIMEOUT_S = 60.0
 STEP_FRACTION = 0.02  # one key press moves the view this fraction of the map's extent
 FRUSTUM_DEPTH_M = 0.15
 FOLLOW_BACK_M = 0.6  # the follow view sits this far behind the current camera
@@ -70,7 +71,8 @@ class Open3DViewer:
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._window, name="open3d", daemon=True)
         self._thread.start()
-        self._open.wait()
+        if not self._open.wait(WINDOW_TIMEOUT_S):
+            self._error = TimeoutError(f"no window after {WINDOW_TIMEOUT_S:g} s")
         if self._error is not None:
             raise UserError(f"the Open3D viewer cannot open a window (no display?): {self._error}")
         log.info("viewer: an Open3D window (W A S D E C move, F follows, Space pauses, K saves, Escape stops)")
