@@ -3,6 +3,7 @@ or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -66,25 +67,24 @@ def export_run(
     return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
 
 
-def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str) -> list[RGBDView]:
-    """Colour and depth rendered from the map at every keyframe pose; depth kept where the map
-    covers the pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
+def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str) -> Iterator[RGBDView]:
+    """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
+    asks for the next when it has integrated the last); depth kept where the map covers the
+    pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
     config = load_config(config_file=folder.config)
     device = resolve_device(device_name)
     renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
     camera = folder.read_intrinsics()
     k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
     gaussians = copied(checkpoint.gaussians, device)
-    views = []
-    with torch.no_grad():
-        for keyframe in checkpoint.keyframes:
+    for keyframe in checkpoint.keyframes:
+        with torch.no_grad():
             c2w = keyframe.c2w.to(device).float()
             view = Camera(invert_pose(c2w), k, camera.width, camera.height, config.render.near, config.render.far)
             out = renderer(gaussians, view)
             depth = torch.where(out.silhouette >= MESH_MIN_SILHOUETTE, out.depth, torch.zeros_like(out.depth))
             color = (out.color.clamp(0, 1) * 255).round().to(torch.uint8)
-            views.append(RGBDView(color.cpu().numpy(), depth.cpu().numpy(), c2w.double().cpu().numpy()))
-    return views
+        yield RGBDView(color.cpu().numpy(), depth.cpu().numpy(), c2w.double().cpu().numpy())
 
 
 def _max_depth(checkpoint: Checkpoint) -> float:
