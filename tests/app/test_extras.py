@@ -37,7 +37,6 @@ def _gsplatam_without_extras(*argv: str) -> subprocess.CompletedProcess[str]:
     "argv, extra",
     [
         (["serve", "--record3d", "http://127.0.0.1:9"], "live"),
-        (["fake-nerfcapture", "--dataset", "SEQUENCE"], "live"),
         (["run", "SEQUENCE", "--viewer", "--set", "dataset.end=1", "--output", "OUT"], "viewer"),
         (["view", "MAP"], "viewer"),
     ],
