@@ -231,16 +231,25 @@ def test_the_follow_view_sits_behind_and_above_the_camera() -> None:
     assert np.allclose(offset, [0.0, -0.25, -0.6])
 
 
-def _launch_browser():
+@pytest.fixture
+def browser():
+    """Headless Chromium, closed whatever the test does (Playwright's sync API holds an event loop
+    in this thread until it stops: left running, it breaks every later asyncio test)."""
     if CHROMIUM is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)")
     playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     manager = playwright_api.sync_playwright().start()
-    browser = manager.chromium.launch(
-        executable_path=CHROMIUM,
-        args=["--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-    )
-    return manager, browser
+    try:
+        chromium = manager.chromium.launch(
+            executable_path=CHROMIUM,
+            args=["--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+        )
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+    finally:
+        manager.stop()
 
 
 def _frame_number(page) -> int | None:
@@ -256,8 +265,7 @@ def _canvas_is_drawn(page, path: Path) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.live
-def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(tmp_path: Path) -> None:
-    manager, browser = _launch_browser()
+def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser, tmp_path: Path) -> None:
     port = free_port()
     log_path = tmp_path / "run.log"
     command = [
@@ -305,8 +313,6 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(tmp_pat
     finally:
         viewing.send_signal(signal.SIGINT)
         assert viewing.wait(timeout=30) == 0
-        browser.close()
-        manager.stop()
 
 
 def test_view_rejects_a_missing_map(tmp_path: Path, capsys) -> None:
