@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker
+#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.
 set -uo pipefail
@@ -61,6 +61,13 @@ for part in "$@"; do
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     mapping-parity) python3 bench/mapping_parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     smoke) bench synthetic --presets tiny --set synthetic.frames=60 --variants sequential,overlapped,views2,selective-adam --stem smoke ;;
+    exports) python3 -m pipeline run --preset tiny --quiet --output /tmp/exports --name tiny 2>&1 | tail -n 3
+             for fmt in nerfstudio splat ply pointcloud mesh; do  # mesh needs open3d (the mesh extra) there
+               start=$SECONDS
+               python3 -m pipeline export /tmp/exports/tiny --to $fmt 2>&1 | tail -n 1
+               echo "export $fmt: $((SECONDS - start)) s"
+             done 2>&1 | tee "$out/exports.txt"
+             ls -la /tmp/exports/tiny /tmp/exports/tiny/nerfstudio | head -n 40 >> "$out/exports.txt" ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac

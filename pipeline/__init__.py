@@ -1,3 +1,3 @@
 """gsplatam: real-time RGB-D SLAM with Gaussian splatting (SplaTAM rebuilt on gsplat)."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -6,12 +6,9 @@ from dataclasses import replace
 
 import torch
 
-from pipeline.config import Config, SyntheticConfig
+from pipeline.config import SYNTHETIC_CPU, SYNTHETIC_GPU, Config, SyntheticConfig
 from pipeline.errors import UserError
 
-# The embedded default scene: full Replica size on a GPU, a small one a 2-core CPU finishes in minutes.
-SYNTHETIC_GPU = (1200, 680, 200)
-SYNTHETIC_CPU = (128, 96, 20)
 DEFAULT_PRESET_CPU = "tiny"
 LIVE_MAX_WIDTH_CPU = 128  # live frames are halved to this width for CPU runs (0: full size on a GPU)
 

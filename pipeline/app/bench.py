@@ -126,17 +126,17 @@ def run_matrix(
 ) -> dict[str, Any]:
     """Run every cell `repeats` times; run folders (and the generated synthetic room) go under `runs`."""
     rows = []
-    for sequence in sequences:
-        for preset in presets:
-            for variant, repeat in itertools.product(variants, range(repeats)):
-                cell = Cell(sequence, preset, variant, repeat)
-                name = f"{Path(sequence).name}_{preset}_{variant}" + (f"_{repeat}" if repeat else "")
-                log.info("bench: %s", name)
-                config = cell_config(cell, base_overrides, runs, name)
-                metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
-                if metrics is None:
-                    raise UserError("benchmark interrupted before its first frame")
-                rows.append(row_of(cell, metrics))
+    cells = [
+        Cell(s, p, v, r) for s in sequences for p in presets for v, r in itertools.product(variants, range(repeats))
+    ]
+    for number, cell in enumerate(cells, start=1):
+        name = f"{Path(cell.sequence).name}_{cell.preset}_{cell.variant}" + (f"_{cell.repeat}" if cell.repeat else "")
+        log.info("bench: cell %d of %d: %s", number, len(cells), name)
+        config = cell_config(cell, base_overrides, runs, name)
+        metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+        if metrics is None:
+            raise UserError("benchmark interrupted before its first frame")
+        rows.append(row_of(cell, metrics))
     add_ratios(rows)
     device = resolve_device("auto")
     return {

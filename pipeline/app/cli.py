@@ -6,10 +6,17 @@ import argparse
 import logging
 import signal
 import sys
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from pipeline import __version__
+from pipeline.config.schema import SYNTHETIC_CPU, SYNTHETIC_GPU
 from pipeline.errors import StageFailure, UserError
+from pipeline.extras import missing_extra
+from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
 
 if TYPE_CHECKING:  # the commands import what they need when they run: --help stays fast
     from pipeline.config import Config
@@ -31,25 +38,47 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE", help="TOML file of settings (applied after the preset)")
     parser.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
-        help="override one setting, e.g. --set tracking.iters=20 (repeatable)",
+        help="override one setting, e.g. --set tracking.iters=20 (repeatable; every key: gsplatam config)",
     )  # fmt: skip
     parser.add_argument("--output", metavar="DIR", help="where run folders go (default: outputs)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="compute device (default: auto)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _common_options() -> Parser:
+    """Options every command takes: progress bars and how much it logs."""
+    common = Parser(add_help=False)
+    common.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    common.add_argument("-v", "--verbose", action="store_true", help="log debug messages (as --log-level debug)")
+    common.add_argument(
+        "--log-level",
+        choices=["debug", "info", "warning", "error"],
+        default="info",
+        help="messages shown (default: info)",
+    )
+    return common
 
 
 def _add_viewer_options(parser: argparse.ArgumentParser, always: bool = False) -> None:
     if not always:
-        parser.add_argument("--viewer", action="store_true", help="watch it in the browser (viser)")
+        parser.add_argument(
+            "--viewer", nargs="?", const="viser", choices=["viser", "open3d"],
+            help="watch it: viser, a web page (the default), or open3d, a desktop window",
+        )  # fmt: skip
     parser.add_argument("--viewer-port", type=int, help="viewer port (default: 8080)")
     parser.add_argument("--viewer-host", help="viewer address (default: 127.0.0.1; 0.0.0.0 exposes it)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="gsplatam", description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).")
+    parser = Parser(
+        prog="gsplatam",
+        description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).",
+        epilog="Every setting (for --set KEY=VALUE and --config FILE): gsplatam config [SECTION]",
+    )
+    parser.add_argument("--version", action="version", version=f"gsplatam {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    command = partial(sub.add_parser, parents=[_common_options()])
 
-    run = sub.add_parser("run", help="SLAM on a dataset (default: a generated synthetic room)")
+    run = command("run", help="SLAM on a dataset (default: a generated synthetic room)")
     run.add_argument(
         "dataset", nargs="?",
         help="dataset folder, Replica or TUM layout (default: synthetic room); or live, without recording: "
@@ -62,12 +91,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
     _add_viewer_options(run)
 
-    synth = sub.add_parser("synth", help="write a synthetic RGB-D sequence with exact poses")
+    synth = command("synth", help="write a synthetic RGB-D sequence with exact poses")
     synth.add_argument("out", help="output folder")
     synth.add_argument("--layout", choices=["replica", "tum"], default="replica")
-    synth.add_argument("--frames", type=int, default=200)
-    synth.add_argument("--width", type=int, default=1200)
-    synth.add_argument("--height", type=int, default=680)
+    gpu, cpu = SYNTHETIC_GPU, SYNTHETIC_CPU
+    for i, name in enumerate(("width", "height", "frames")):
+        synth.add_argument(f"--{name}", type=int, default=0, help=f"default: {gpu[i]} with CUDA, {cpu[i]} on the CPU")
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--speed", type=float, default=0.3, help="camera speed, m/s")
     synth.add_argument("--jitter", type=float, default=0.01, help="hand-held shake, metres")
@@ -75,9 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--depth-noise", type=float, default=0.0, help="TUM only: depth noise std = k x depth^2")
     synth.add_argument("--holes", type=float, default=0.0, help="TUM only: fraction of depth pixels zeroed")
     synth.add_argument("--time-jitter", type=float, default=0.0, help="TUM only: depth/pose timestamp offsets, s")
-    synth.add_argument("--quiet", action="store_true")
 
-    bench = sub.add_parser("bench", help="benchmark matrix: presets x sequences (x ablations), JSON and a table")
+    bench = command("bench", help="benchmark matrix: presets x sequences (x ablations), JSON and a table")
     bench.add_argument("sequences", nargs="*", help="dataset folders (default: the synthetic room)")
     bench.add_argument("--presets", default="tiny", help="comma-separated presets (default: tiny)")
     bench.add_argument("--ablations", action="store_true", help="also run each side-by-side switch")
@@ -90,8 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
-    bench.add_argument("--quiet", action="store_true")
-    serve = sub.add_parser("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
+    serve = command("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
     live = serve.add_mutually_exclusive_group(required=True)
     live.add_argument("--record3d", metavar="URL", help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20")
     live.add_argument(
@@ -102,24 +129,34 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
     _add_viewer_options(serve)
 
-    fake = sub.add_parser("fake-record3d", help="a fake Record3D phone streaming a dataset (for tests and demos)")
+    fake = command("fake-record3d", help="a fake Record3D phone streaming a dataset (for tests and demos)")
     fake.add_argument("--dataset", help="dataset folder (default: the generated synthetic room)")
     fake.add_argument("--host", default="127.0.0.1", help="address to serve on (default: 127.0.0.1)")
     fake.add_argument("--port", type=int, default=8000, help="HTTP port (the real app uses 80)")
     fake.add_argument("--fps", type=float, default=30.0, help="frame rate of the stream")
     fake.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
     fake.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
-    fake.add_argument("--quiet", action="store_true")
-    fake_nc = sub.add_parser("fake-nerfcapture", help="publish a dataset as the NeRFCapture app would (DDS)")
+    fake_nc = command("fake-nerfcapture", help="publish a dataset as the NeRFCapture app would (DDS)")
     fake_nc.add_argument("--dataset", help="dataset folder (default: the generated synthetic room)")
     fake_nc.add_argument("--fps", type=float, default=10.0, help="frame rate")
     fake_nc.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a receiver")
     fake_nc.add_argument("--domain", type=int, default=0, help="DDS domain id (default: 0, the app's)")
     fake_nc.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
-    fake_nc.add_argument("--quiet", action="store_true")
-    view = sub.add_parser("view", help="web viewer for a saved map: a run folder or a 3DGS PLY")
+    view = command("view", help="viewer for a saved map: a run folder or a 3DGS PLY")
     view.add_argument("path", help="run folder (map.ply, trajectory.txt) or a .ply file")
+    view.add_argument("--open3d", action="store_true", help="in a desktop window (Open3D) instead of the browser")
     _add_viewer_options(view, always=True)
+
+    export = command("export", help="a run folder to nerfstudio, .splat, a full PLY, a mesh or a point cloud")
+    export.add_argument("run_dir", help="run folder")
+    export.add_argument("--to", required=True, choices=list(EXPORT_FORMATS), help="the format")
+    export.add_argument("--output", metavar="PATH", help="file (folder for nerfstudio); default: in the run folder")
+    export.add_argument("--voxel", type=float, default=0.02, help="mesh: TSDF voxel size, metres (default: 0.02)")
+    export.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="mesh: where to render")
+
+    config = command("config", help="list every setting: key, type, default and meaning")
+    config.add_argument("section", nargs="?", help="only this section (e.g. tracking)")
+    config.add_argument("--preset", default="base", help="defaults of this preset (default: base)")
     return parser
 
 
@@ -142,7 +179,8 @@ def _config_from(args: argparse.Namespace) -> Config:
         ("run.device", args.device),
         ("run.name", getattr(args, "name", None)),
         ("run.loader", getattr(args, "loader", None)),
-        ("viewer.enabled", "true" if getattr(args, "viewer", False) else None),
+        ("viewer.enabled", "true" if getattr(args, "viewer", None) else None),
+        ("viewer.kind", getattr(args, "viewer", None)),
         ("viewer.port", getattr(args, "viewer_port", None)),
         ("viewer.host", getattr(args, "viewer_host", None)),
     ):
@@ -152,7 +190,7 @@ def _config_from(args: argparse.Namespace) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from pipeline.app.report import format_table
+    from pipeline.app.report import files_and_next_steps, format_table
     from pipeline.app.run import run_slam
 
     config = _config_from(args)
@@ -168,19 +206,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     if result.metrics is None:
         return 0
     print(format_table(result.metrics))
-    print(f"outputs: {result.folder.path}/ (metrics.json, frames.csv, trajectory.txt, map.ply, checkpoint.safetensors)")
+    print(files_and_next_steps(result.folder.path))
     return 0
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from pipeline.config import SyntheticConfig
-    from pipeline.devices import resolve_device
+    from pipeline.devices import resolve_device, synthetic_for
     from pipeline.io.datasets.synthetic_writer import write_synthetic
 
-    config = SyntheticConfig(
-        frames=args.frames,
-        width=args.width,
-        height=args.height,
+    device = resolve_device("auto")
+    sizes = SyntheticConfig(frames=args.frames, width=args.width, height=args.height)
+    config = replace(
+        synthetic_for(sizes, device),
         seed=args.seed,
         speed=args.speed,
         jitter=args.jitter,
@@ -190,8 +230,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
         holes=args.holes,
         time_jitter=args.time_jitter,
     )
-    count = write_synthetic(Path(args.out), config, not args.quiet, resolve_device("auto"))
-    print(f"wrote {count} frames ({args.width}x{args.height}, {args.layout} layout) to {args.out}")
+    count = write_synthetic(Path(args.out), config, not args.quiet, device)
+    print(f"wrote {count} frames ({config.width}x{config.height}, {args.layout} layout) to {args.out}")
     return 0
 
 
@@ -246,13 +286,15 @@ def live_source(spec: str, config: Config) -> Source:
 
 
 def _serve_live(spec: str, config: Config, progress: bool) -> int:
+    from pipeline.app.report import files_and_next_steps
     from pipeline.app.serve import serve
 
     source = live_source(spec, config)
     log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
     result = serve(config, source, progress=progress)
     if result.metrics is not None:
-        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians: {result.folder.path}/")
+        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians")
+        print(files_and_next_steps(result.folder.path))
     return 0
 
 
@@ -321,34 +363,28 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    import threading
+    from pipeline.app.view import view_saved_map
 
-    from pipeline.io.outputs.ply import read_ply
-    from pipeline.io.trajectory import read_tum_trajectory
-    from pipeline.io.ui.viewer import Viewer
-    from pipeline.io.ui.viewer_feed import map_view
+    view_saved_map(Path(args.path), args.open3d, args.viewer_host or "127.0.0.1", args.viewer_port or 8080)
+    return 0
 
-    path = Path(args.path)
-    ply = path / "map.ply" if path.is_dir() else path
-    if not ply.is_file():
-        raise UserError(f"no map to show: {ply} does not exist")
-    gaussians = read_ply(ply)
-    viewer = Viewer(args.viewer_host or "127.0.0.1", args.viewer_port or 8080, f"gsplatam: {ply}", live=False)
-    viewer.show_map(map_view(gaussians))
-    trajectory = path / "trajectory.txt"
-    if path.is_dir() and trajectory.is_file():
-        poses = read_tum_trajectory(trajectory)[1]
-        viewer.show_trajectory(poses)
-        if len(poses):
-            viewer.look_from(poses[0])
-    viewer.stats.content = f"{len(gaussians):,} Gaussians from {ply}"
-    print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)")
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass  # the way to quit
-    finally:
-        viewer.close()
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from pipeline.app.export import export_run
+
+    exported = export_run(
+        Path(args.run_dir), args.to, Path(args.output) if args.output else None, args.voxel, args.device
+    )
+    print(f"wrote {exported.path}: {exported.summary}")
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from pipeline.config import preset_config
+    from pipeline.config.docs import config_sections, format_sections
+
+    print(format_sections(config_sections(preset_config(args.preset), args.section)), end="")
+    print("Set a key with --set KEY=VALUE or in a TOML file given to --config ([section] then key = value).")
     return 0
 
 
@@ -360,6 +396,8 @@ COMMANDS = {
     "fake-record3d": cmd_fake_record3d,
     "fake-nerfcapture": cmd_fake_nerfcapture,
     "view": cmd_view,
+    "export": cmd_export,
+    "config": cmd_config,
 }
 
 
@@ -367,26 +405,42 @@ def _terminate_as_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def main(argv: list[str] | None = None) -> int:
+def _configure_logging(args: argparse.Namespace) -> None:
     logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
+    log.setLevel(logging.DEBUG if args.verbose else getattr(logging, args.log_level.upper()))
     for chatty in ("aioice", "aiortc", "websockets"):  # per-candidate ICE and per-connection logs at INFO
         logging.getLogger(chatty).setLevel(logging.WARNING)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _configure_logging(args)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
-    args = build_parser().parse_args(argv)
     try:
-        return COMMANDS[args.command](args)
+        with logging_redirect_tqdm():  # log lines go above the progress bars, never through them
+            return COMMANDS[args.command](args)
     except UserError as exc:
-        print(f"gsplatam: error: {exc}", file=sys.stderr)
-        return 2
-    except StageFailure as exc:
-        if not isinstance(exc.cause, UserError):
+        return _fail(str(exc))
+    except ImportError as exc:
+        message = missing_extra(exc)
+        if message is None:
             raise
-        print(f"gsplatam: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(message)
+    except StageFailure as exc:
+        if isinstance(exc.cause, UserError):
+            return _fail(str(exc))
+        if isinstance(exc.cause, ImportError) and (message := missing_extra(exc.cause)):
+            return _fail(f"stage '{exc.stage}': {message}")
+        raise
     except KeyboardInterrupt:
         print("gsplatam: interrupted", file=sys.stderr)
         return 130
+
+
+def _fail(message: str) -> int:
+    print(f"gsplatam: error: {message}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

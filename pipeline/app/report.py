@@ -107,3 +107,29 @@ def format_table(metrics: dict[str, Any]) -> str:
         rows.append(("peak GPU memory", f"{metrics['peak_gpu_memory_gb']:.2f} GB"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def files_and_next_steps(folder: Path) -> str:
+    """The end of a run's output: every file in its run folder, then the commands that take it further."""
+    files = sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+    shown = [str(p) for p in files if len(p.parts) == 1]
+    shown += sorted(
+        {f"{p.parts[0]}/ ({sum(q.parts[0] == p.parts[0] for q in files)} files)" for p in files if len(p.parts) > 1}
+    )
+    lines = [f"outputs: {folder}/", *(f"  {name}" for name in shown), "next:", f"  gsplatam view {folder}"]
+    if (folder / "groundtruth.txt").is_file():
+        lines.append(f"  evo_ape tum {folder}/groundtruth.txt {folder}/trajectory.txt -a   # the same ATE, by evo")
+    lines.append(f"  gsplatam export {folder} --to nerfstudio|splat|ply|mesh|pointcloud")
+    if (folder / "recording" / "rgb.txt").is_file():
+        lines.append(f"  gsplatam run {folder}/recording   # the live session again, offline")
+    return "\n".join(lines)
+
+
+def run_summary(frames: int, gaussians: int, ate_cm: float | None, psnr_db: float | None) -> str:
+    """One markdown line for the viewer at the end of a run."""
+    parts = [f"**run finished**: {frames} frames, {gaussians:,} Gaussians"]
+    if ate_cm is not None:
+        parts.append(f"ATE RMSE {ate_cm:.2f} cm")
+    if psnr_db is not None:
+        parts.append(f"PSNR {psnr_db:.1f} dB")
+    return ", ".join(parts)

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.app.report import timing_summary, versions
+from pipeline.app.report import run_summary, timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device, synthetic_for
@@ -49,13 +49,20 @@ def run_slam(
     source = DatasetSource(dataset, checkpoint.frames_done if checkpoint else 0)
     session = open_session(config, source, folder, progress=progress, resume=checkpoint, total=len(dataset))
     log.info("dataset: %s (%s, %d frames)", dataset.name, dataset.format, len(dataset))
-    report = execute_session(session, profile_trace)
-    if session.slam.gaussians is None:
-        if report.interrupted:
-            log.info("interrupted before the first frame was processed: nothing to write")
-            return RunResult(session.folder, None)
-        raise UserError("no frame was processed")
-    return RunResult(session.folder, _finish(session, dataset, report, progress))
+    try:
+        report = execute_session(session, profile_trace)
+        if session.slam.gaussians is None:
+            if report.interrupted:
+                log.info("interrupted before the first frame was processed: nothing to write")
+                return RunResult(session.folder, None)
+            raise UserError("no frame was processed")
+        metrics = _finish(session, dataset, report, progress)
+        ate, render = metrics["ate"] or {}, metrics["render"] or {}
+        summary = run_summary(metrics["frames"], metrics["gaussians"], ate.get("rmse_cm"), render.get("psnr_db"))
+        session.linger(summary + f"\n\nin {session.folder.path}")
+        return RunResult(session.folder, metrics)
+    finally:
+        session.close()
 
 
 def _default_name(dataset: Dataset, config: Config) -> str:

@@ -7,6 +7,8 @@ endpoint on localhost.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -18,38 +20,28 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.app.report import timing_summary, versions
+from pipeline.app.report import run_summary, timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
+from pipeline.io.live.recording import RecordingSource
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.status_http import serve_status
-from pipeline.metrics import absolute_trajectory_error
-from pipeline.runtime import Graph
+from pipeline.runtime import Graph, RuntimeReport
 from pipeline.slam.results import FrameResult
 from pipeline.source import Source
+from pipeline.stages.sinks import ResultSink, ate_so_far_cm, recent_fps
 
 log = logging.getLogger("gsplatam")
 
-FPS_WINDOW = 10  # frames over which the status endpoint's fps is measured
 AGE_WINDOW = 100  # frames over which the status endpoint's frame ages are taken
+BAR_EVERY_S = 1.0  # the progress bar's live counters are refreshed this often
 
 
 @dataclass
 class ServeResult:
     folder: RunFolder
     metrics: dict[str, Any] | None  # None when no frame was processed
-
-
-def live_ate_cm(results: list[FrameResult]) -> float | None:
-    """ATE RMSE (cm) of the frames that came with a reference pose (NeRFCapture's device pose
-    when live.device_pose = groundtruth); None with fewer than 3."""
-    pairs = [(r.c2w, r.c2w_gt) for r in results if r.c2w_gt is not None]
-    if len(pairs) < 3:
-        return None
-    estimated = np.stack([e.double().numpy() for e, _ in pairs])
-    reference = np.stack([g.double().numpy() for _, g in pairs])
-    return 100 * absolute_trajectory_error(estimated, reference).rmse_m
 
 
 def frame_age_ms(results: list[FrameResult]) -> dict[str, float | None]:
@@ -73,8 +65,6 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
 
     def read() -> dict[str, Any]:
         results, arrivals = sink.results, sink.arrivals
-        recent = arrivals[-FPS_WINDOW:]
-        fps = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
         dropped = graph.dropped()
         last = results[-1] if results else None
         return {
@@ -84,14 +74,14 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "dropped": sum(dropped.values()),
             "dropped_by_queue": dropped,
             "frame_age_ms": frame_age_ms(results[-AGE_WINDOW:]),
-            "fps": fps,
+            "fps": recent_fps(arrivals),
             "gaussians": last.gaussians if last else 0,
             "tracking": _tracking_state(last),
             "lost_frames": sink.lost_frames,
             "unmapped_frames": sink.unmapped_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
-            "ate_rmse_cm": live_ate_cm(results),
+            "ate_rmse_cm": ate_so_far_cm(results),
             "gpu_memory_gb": _gpu_memory_gb(session.device),
         }
 
@@ -121,20 +111,50 @@ def with_live_bounds(config: Config) -> Config:
     return config
 
 
+async def status_on_bar(sink: ResultSink, read: Callable[[], dict[str, Any]], stop: asyncio.Event) -> None:
+    """A runtime service: the daemon's counters on the progress bar, every BAR_EVERY_S, until `stop`."""
+    while not stop.is_set():
+        status = read()
+        age = status["seconds_since_last_frame"]
+        fields = {k: status[k] for k in ("received", "processed", "dropped")}
+        sink.show(fields | {"age": "-" if age is None else f"{age:.1f}s"})
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
+
+
 def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
     """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the end."""
     device = resolve_device(config.run.device)
     config = with_live_bounds(complete_config(config, device, "tum"))  # a phone's depth is a real sensor's, as TUM's
     folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
+    recording = RecordingSource(source, folder / "recording") if config.live.record else None
+    source = recording or source
     session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
 
     def add_status(graph: Graph) -> None:
+        read = status_reader(session, graph)
+        graph.services.append(partial(status_on_bar, session.sink, read))
         if config.live.status_port:
-            read = status_reader(session, graph)
             graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
 
-    report = execute_session(session, on_graph=add_status)
-    slam, sink = session.slam, session.sink
+    try:
+        report = execute_session(session, on_graph=add_status)
+        if recording is not None:
+            recording.close()  # complete before the final save, and before the viewer lingers
+        result = _save(session, report)
+        if result.metrics is not None:
+            m = result.metrics
+            session.linger(run_summary(m["frames"], m["gaussians"], m["ate_rmse_cm"], None) + f"\n\nin {folder}")
+        return result
+    finally:
+        if recording is not None:
+            recording.close()
+        session.close()
+
+
+def _save(session: Session, report: RuntimeReport) -> ServeResult:
+    """The final save (map, trajectory, checkpoint) and metrics.json."""
+    config, slam, sink, source = session.config, session.slam, session.sink, session.source
     if slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
@@ -148,12 +168,12 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "lost_frames": sink.lost_frames,
         "unmapped_frames": sink.unmapped_frames,
         "counters": vars(source.counters),
-        "device": describe(device, config),
+        "device": describe(session.device, config),
         "versions": versions(),
         "runtime": report.summary(),
         "time": timing_summary(sink.results, report, sink.arrivals),
         "frame_age_ms": frame_age_ms(sink.results),
-        "ate_rmse_cm": live_ate_cm(sink.results),
+        "ate_rmse_cm": ate_so_far_cm(sink.results),
     }
     session.folder.write_metrics(metrics)
     return ServeResult(session.folder, metrics)

@@ -19,6 +19,7 @@ from pipeline.app.profiling import all_threads_config, summarise
 from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
 from pipeline.io.outputs.atomic import atomic_write_text
+from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.io.outputs.periodic_save import PeriodicSave
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
@@ -49,14 +50,26 @@ class Session:
     slam: SplaTAM
     source: Source
     sink: ResultSink
+    intrinsics: IntrinsicsRecorder
     saver: PeriodicSave | None = None
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
 
+    def linger(self, summary: str) -> None:
+        """After the run: the viewer, if any, keeps the final map up for its watchers (`summary`
+        in markdown on it) until they close it or press Stop."""
+        if self.viewer is not None:
+            self.viewer.linger(summary)
+
+    def close(self) -> None:
+        """Close the viewer (safe to call twice); the rest closes when the graph ends."""
+        if self.viewer is not None:
+            self.viewer.close()
+
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
-        return [o for o in (self.saver, self.viewer) if o is not None]
+        return [o for o in (self.intrinsics, self.saver, self.viewer) if o is not None]
 
 
 def open_session(
@@ -84,11 +97,12 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
+    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
     sink = ResultSink(run_folder.append_frames, total=total, initial=initial, progress=progress)
     saver = PeriodicSave(run_folder, save_every_s) if save_every_s is not None else None
-    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
-    return Session(config, device, run_folder, slam, source, sink, saver, viewer, services)
+    intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
+    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
 
 
 def slam_stages(session: Session) -> list[SlamStage]:
@@ -115,8 +129,9 @@ def graph_of(session: Session) -> Graph:
 def execute_session(
     session: Session, profile_trace: bool = False, on_graph: Callable[[Graph], None] | None = None
 ) -> RuntimeReport:
-    """Run the session's graph to the end of its source or a stop; sink, saver and viewer are
-    closed whatever happens. `on_graph` sees the graph before it runs (the status endpoint)."""
+    """Run the session's graph to the end of its source or a stop; sink and saver are closed
+    and the viewer shows the final state whatever happens (`Session.close` closes it). `on_graph`
+    sees the graph before it runs (the status endpoint)."""
     graph = graph_of(session)
     if on_graph is not None:
         on_graph(graph)
@@ -129,7 +144,7 @@ def execute_session(
         if session.saver is not None:
             session.saver.close()
         if session.viewer is not None:
-            session.viewer.close()
+            session.viewer.finish()  # the final map on screen; it stays up until Session.close
 
 
 def _profiled(graph: Graph, session: Session) -> RuntimeReport:

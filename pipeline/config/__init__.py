@@ -13,6 +13,8 @@ from pipeline.config.schema import (
     DATASET_DEFAULTS,
     PRESET_TRACKING,
     PRESETS,
+    SYNTHETIC_CPU,
+    SYNTHETIC_GPU,
     Config,
     DatasetConfig,
     DatasetFormat,
@@ -36,12 +38,14 @@ from pipeline.config.schema import (
     TrackingConfig,
     TrackingMethod,
     ViewerConfig,
+    ViewerKind,
 )
 
 __all__ = [
-    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "Config", "DatasetConfig", "DatasetFormat", "DensifyConfig",
-    "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LossConfig", "MapOptimizerKind",
-    "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig", "Schedule", "SlamConfig", "Switch",
-    "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
+    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "Config", "DatasetConfig",
+    "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind",
+    "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
+    "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
+    "ViewerKind",
     "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

@@ -211,15 +211,15 @@ def to_toml(config: Config) -> str:
             continue
         lines.append(f"\n[{section.name}]")
         for item in fields(value):
-            lines.append(f"{item.name} = {_toml_value(getattr(value, item.name))}")
+            lines.append(f"{item.name} = {toml_value(getattr(value, item.name))}")
     return "\n".join(lines) + "\n"
 
 
-def _toml_value(value: Any) -> str:
+def toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return repr(value)

@@ -13,32 +13,41 @@ LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
 TrackingMethod = Literal["adam", "align"]
+ViewerKind = Literal["viser", "open3d"]
 
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    path: str = ""  # empty: generate the embedded synthetic scene
-    format: DatasetFormat = "auto"
-    width: int = 0  # 0: native size; otherwise resize (colour linear, depth nearest)
-    height: int = 0
-    start: int = 0
-    end: int = -1  # exclusive; -1: to the end
-    stride: int = 1
-    intrinsics: tuple[float, ...] = ()  # (fx, fy, cx, cy) at the stored size; empty: from the layout
+    """The input sequence on disk and how much of it is used."""
+
+    path: str = ""  # dataset folder (Replica or TUM layout); empty: generate the embedded synthetic room
+    format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files
+    width: int = 0  # working width in pixels; 0: native size, else resized (colour linear, depth nearest)
+    height: int = 0  # working height in pixels (set with width)
+    start: int = 0  # first frame used
+    end: int = -1  # frame after the last one used (exclusive); -1: to the end
+    stride: int = 1  # use every Nth frame
+    intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels at the stored size; empty: from the layout
+
+
+# The embedded default scene (width, height, frames): full Replica size on a GPU, a small one a
+# 2-core CPU finishes in minutes.
+SYNTHETIC_GPU = (1200, 680, 200)
+SYNTHETIC_CPU = (128, 96, 20)
 
 
 @dataclass(frozen=True)
 class SyntheticConfig:
     """The embedded default scene; sizes of 0 are chosen by device (small on the CPU)."""
 
-    frames: int = 0
-    width: int = 0
-    height: int = 0
-    seed: int = 0
+    frames: int = 0  # frames generated; 0: by device (200 with CUDA, 20 on the CPU)
+    width: int = 0  # pixels; 0: by device (1200 with CUDA, 128 on the CPU)
+    height: int = 0  # pixels; 0: by device (680 with CUDA, 96 on the CPU)
+    seed: int = 0  # chooses the room's objects, textures and the camera path
     speed: float = 0.3  # metres per second along the path
     jitter: float = 0.01  # metres (and radians x 0.5) of hand-held shake
-    fps: float = 30.0
-    layout: DatasetFormat = "replica"  # replica or tum
+    fps: float = 30.0  # frame rate of the timestamps
+    layout: DatasetFormat = "replica"  # folder layout written: replica or tum
     depth_noise: float = 0.0  # TUM layout only: depth noise std = depth_noise x depth^2, metres
     holes: float = 0.0  # TUM layout only: fraction of depth pixels zeroed, in blobs
     time_jitter: float = 0.0  # TUM layout only: depth and pose timestamp offsets up to this, seconds
@@ -46,11 +55,13 @@ class SyntheticConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
+    """Camera tracking: the pose estimated against the map, per frame."""
+
     method: TrackingMethod = "adam"  # adam: SplaTAM's rendering loss; align: dense RGB-D alignment to one render
-    iters: int = 40  # adam's iterations
-    lr_rotation: float = 0.0  # 0: by dataset (0.0004 Replica-like, 0.002 TUM)
-    lr_translation: float = 0.002
-    silhouette_threshold: float = 0.99
+    iters: int = 40  # adam's optimisation iterations per frame (the preset sets it)
+    lr_rotation: float = 0.0  # Adam step of the pose rotation; 0: by dataset (0.0004 Replica-like, 0.002 TUM)
+    lr_translation: float = 0.002  # Adam step of the pose translation, metres
+    silhouette_threshold: float = 0.99  # only pixels the map covers at least this much count in the loss
     lost_translation_m: float = 0.3  # a jump beyond this from the initial guess marks tracking lost
     lost_coverage: float = 0.05  # fewer pixels than this fraction above the threshold marks it lost
     refine_iters: int = 0  # align: then this many of adam's iterations from the aligned pose
@@ -70,55 +81,67 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class MappingConfig:
-    iters: int = 60
-    window: int = 24
-    lr_means: float = 1e-4
-    lr_colors: float = 2.5e-3
-    lr_rotations: float = 1e-3
-    lr_opacities: float = 5e-2
-    lr_scales: float = 1e-3
-    ssim_weight: float = 0.2
-    prune_opacity: float = 0.005
-    prune_scale_factor: float = 0.1  # x scene radius
-    prune_at: tuple[int, ...] = (0, 20)
-    scene_radius_divisor: float = 0.0  # 0: by dataset (3 Replica-like, 2 TUM)
+    """Mapping: the Gaussians optimised over a window of keyframes, per frame."""
+
+    iters: int = 60  # optimisation iterations per frame (the preset sets it)
+    window: int = 24  # keyframes mapped with each frame, the current one included (the preset sets it)
+    lr_means: float = 1e-4  # Adam step of the Gaussian centres, metres
+    lr_colors: float = 2.5e-3  # Adam step of the colours
+    lr_rotations: float = 1e-3  # Adam step of the rotations (quaternions)
+    lr_opacities: float = 5e-2  # Adam step of the opacity logits
+    lr_scales: float = 1e-3  # Adam step of the log-scales
+    ssim_weight: float = 0.2  # weight of 1 - SSIM in the colour loss (the rest is L1)
+    prune_opacity: float = 0.005  # Gaussians below this opacity are removed at the prune iterations
+    prune_scale_factor: float = 0.1  # Gaussians larger than this x scene radius are removed
+    prune_at: tuple[int, ...] = (0, 20)  # mapping iterations at which pruning runs
+    scene_radius_divisor: float = 0.0  # scene radius = first frame's max depth / this; 0: by dataset (3 Replica, 2 TUM)
     max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
-    views_per_step: int = 1  # keyframe views rendered together per optimiser step (same renders in all)
-    optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw
+    views_per_step: int = 1  # keyframe views rendered together per optimiser step (the same renders in all)
+    optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
 
 
 @dataclass(frozen=True)
 class DensifyConfig:
-    silhouette_threshold: float = 0.5
-    depth_error_factor: float = 50.0  # x median depth error
+    """Where new Gaussians are added from each tracked frame."""
+
+    silhouette_threshold: float = 0.5  # pixels the map covers less than this get new Gaussians
+    depth_error_factor: float = 50.0  # so do pixels whose depth error exceeds this x the median error
 
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    every: int = 5
-    overlap_samples: int = 1600
-    max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes (keyframes.py)
+    """Which frames are kept for mapping."""
+
+    every: int = 5  # every Nth frame becomes a keyframe (the last frame too)
+    overlap_samples: int = 1600  # pixels sampled to measure a keyframe's overlap with the current frame
+    max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes
 
 
 @dataclass(frozen=True)
 class LossConfig:
-    color_weight: float = 0.5
-    depth_weight: float = 1.0
+    """Weights of the rendering losses."""
+
+    color_weight: float = 0.5  # weight of the colour term in tracking and mapping losses
+    depth_weight: float = 1.0  # weight of the depth (L1, metres) term
 
 
 @dataclass(frozen=True)
 class GaussianConfig:
-    kind: GaussianKind = "3d"
-    isotropic: bool = True
+    """The kind of Gaussian the map is made of."""
+
+    kind: GaussianKind = "3d"  # 3d Gaussians, or 2d (flat discs, surfels)
+    isotropic: bool = True  # one scale per Gaussian (SplaTAM) instead of three
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    backend: RenderBackend = "auto"
-    packed: bool = False
-    eps2d: float = 0.3
-    near: float = 0.01
-    far: float = 100.0
+    """The differentiable renderer."""
+
+    backend: RenderBackend = "auto"  # gsplat (CUDA) or the pure-PyTorch reference; auto: gsplat on a GPU
+    packed: bool = False  # gsplat's packed mode (less memory, usually slower)
+    eps2d: float = 0.3  # pixels^2 added to every projected covariance (anti-aliasing floor)
+    near: float = 0.01  # near plane, metres
+    far: float = 100.0  # far plane, metres
 
 
 Schedule = Literal["sequential", "overlapped"]
@@ -134,14 +157,16 @@ class SlamConfig:
 
 @dataclass(frozen=True)
 class RunConfig:
-    output: str = "outputs"
-    name: str = ""  # empty: derived from the dataset and preset
-    device: str = "auto"  # auto | cpu | cuda
+    """The run itself: outputs, device, evaluation, the pipeline."""
+
+    output: str = "outputs"  # where run folders go
+    name: str = ""  # run folder name; empty: derived from the dataset and preset
+    device: str = "auto"  # auto | cpu | cuda (auto: cuda when available)
     eval_every: int = 5  # render metrics on every Nth frame
-    loader: LoaderKind = "pipelined"
+    loader: LoaderKind = "pipelined"  # asyncio pipeline, or sync: read, decode and process one frame at a time
     compile: Switch = "auto"  # torch.compile the per-iteration loss and pose functions (auto: on CUDA)
-    queue_size: int = 4
-    seed: int = 0
+    queue_size: int = 4  # frames each pipeline queue holds
+    seed: int = 0  # seeds mapping's keyframe picks and pixel sampling
 
 
 PoseUse = Literal["initial_guess", "groundtruth", "ignore"]
@@ -152,32 +177,38 @@ class LiveConfig:
     """The `serve` daemon and its live sources."""
 
     width: int = 0  # SLAM's working size; 0: the first frame's (later frames are resized to it)
-    height: int = 0
+    height: int = 0  # SLAM's working height (set with width)
     save_every_s: float = 60.0  # map, trajectory and checkpoint written this often (and at exit)
-    status_host: str = "127.0.0.1"
+    status_host: str = "127.0.0.1"  # address of the JSON status endpoint
     status_port: int = 8765  # JSON status at http://status_host:status_port/status; 0: off
     retry_initial_s: float = 1.0  # back-off after a failed connection, doubling up to retry_max_s
-    retry_max_s: float = 30.0
+    retry_max_s: float = 30.0  # longest back-off between reconnection attempts
     connect_timeout_s: float = 10.0  # signalling to first frame
     stall_timeout_s: float = 5.0  # no frame for this long: the phone is gone, reconnect
     device_pose: PoseUse = "initial_guess"  # NeRFCapture: what the phone's pose is used for
     dds_domain: int = 0  # NeRFCapture: the DDS domain id (the app uses 0)
     max_keyframes: int = 200  # a live session's keyframes.max_kept unless that is set: memory flat for hours
     max_gaussians: int = 2_000_000  # a live session's mapping.max_gaussians unless that is set
+    record: bool = False  # save the frames SLAM receives in <run folder>/recording (TUM layout), to re-run offline
 
 
 @dataclass(frozen=True)
 class ViewerConfig:
-    enabled: bool = False
-    host: str = "127.0.0.1"  # 0.0.0.0 exposes it to the network: deliberately
-    port: int = 8080
+    """The live viewer of `--viewer`."""
+
+    enabled: bool = False  # show the run in a viewer (--viewer)
+    kind: ViewerKind = "viser"  # viser: a web page; open3d: a desktop window (the mesh extra)
+    host: str = "127.0.0.1"  # web viewer address; 0.0.0.0 exposes it to the network: deliberately
+    port: int = 8080  # web viewer port
     max_hz: float = 1.0  # frame snapshots (stats, images, camera) per second at most
     map_every_s: float = 5.0  # the whole map is sent this often at most (~32 bytes per Gaussian; viewer.md)
 
 
 @dataclass(frozen=True)
 class Config:
-    preset: str = "base"
+    """Every setting of a run; `gsplatam config` lists them."""
+
+    preset: str = "base"  # tiny, small, base or tum: tracking and mapping iterations, window, keyframe rate
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from pipeline.errors import DataError
+from pipeline.io.outputs.atomic import atomic_write_bytes
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
@@ -63,13 +64,30 @@ def resize_rgbd(
     return color, depth, scaled
 
 
-def write_depth_png(path: Path, depth: np.ndarray, scale: float) -> None:
-    """Depth [H, W] metres -> uint16 PNG of round(depth x scale), saturating at 65535."""
+def encode_depth_png(depth: np.ndarray, scale: float) -> bytes:
+    """Depth [H, W] metres -> a uint16 PNG of round(depth x scale), saturating at 65535."""
     quantised = np.clip(np.rint(depth.astype(np.float64) * scale), 0, 65535).astype(np.uint16)
-    cv2.imwrite(str(path), quantised)
+    return _encode(".png", quantised, [])
+
+
+def encode_color(color: np.ndarray, suffix: str) -> bytes:
+    """[H, W, 3] uint8 RGB -> the bytes of an image file of type `suffix` (JPEG at quality 95)."""
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if suffix.lower() in (".jpg", ".jpeg") else []
+    return _encode(suffix, cv2.cvtColor(color, cv2.COLOR_RGB2BGR), params)
+
+
+def _encode(suffix: str, image: np.ndarray, params: list[int]) -> bytes:
+    ok, data = cv2.imencode(suffix, image, params)
+    if not ok:
+        raise DataError(f"cannot encode a {image.shape} {image.dtype} image as {suffix}")
+    return data.tobytes()
+
+
+def write_depth_png(path: Path, depth: np.ndarray, scale: float) -> None:
+    """Depth [H, W] metres -> uint16 PNG of round(depth x scale), written atomically."""
+    atomic_write_bytes(path, encode_depth_png(depth, scale))
 
 
 def write_color(path: Path, color: np.ndarray) -> None:
-    """[H, W, 3] uint8 RGB -> image file (format by extension; JPEG at quality 95)."""
-    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix.lower() in (".jpg", ".jpeg") else []
-    cv2.imwrite(str(path), cv2.cvtColor(color, cv2.COLOR_RGB2BGR), params)
+    """[H, W, 3] uint8 RGB -> image file (format by extension), written atomically."""
+    atomic_write_bytes(path, encode_color(color, path.suffix))

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -15,10 +16,11 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
 from pipeline.io.datasets.loader import open_dataset
+from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
 from pipeline.io.trajectory import read_tum_trajectory
 
 
-@pytest.mark.parametrize("command", [[], ["run"], ["synth"], ["bench"], ["serve"], ["view"]])
+@pytest.mark.parametrize("command", [[], ["run"], ["synth"], ["bench"], ["serve"], ["view"], ["export"], ["config"]])
 def test_help_everywhere(command: list[str], capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(command + ["--help"])
@@ -46,6 +48,36 @@ def test_user_errors_are_one_line_and_exit_2(argv: list[str], message: str, caps
     assert code == 2
     assert err[-1].startswith("gsplatam: error: ") and message in err[-1]
     assert "Traceback" not in "\n".join(err)
+
+
+def test_help_points_to_the_config_command_and_synth_shows_its_sizes(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "gsplatam config" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["synth", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "default: 1200 with CUDA, 128 on the CPU" in out and "default: 200 with CUDA, 20 on the CPU" in out
+
+
+def test_version(capsys) -> None:
+    import pipeline
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"gsplatam {pipeline.__version__}"
+
+
+@pytest.mark.parametrize("argv, level", [([], "INFO"), (["-v"], "DEBUG"), (["--log-level", "warning"], "WARNING")])
+def test_log_level_options(argv: list[str], level: str, capsys) -> None:
+    import logging
+
+    logger = logging.getLogger("gsplatam")
+    try:
+        assert main(["config", "run", *argv]) == 0
+        assert logging.getLevelName(logger.level) == level
+    finally:
+        logger.setLevel(logging.NOTSET)
 
 
 def test_argparse_errors_exit_2_in_one_line(capsys) -> None:
@@ -76,6 +108,7 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     assert main(base + ["--set", "dataset.end=4"]) == 0
     printed = capsys.readouterr().out
     assert "ATE RMSE / mean" in printed and "outputs:" in printed
+    assert "  intrinsics.json" in printed and "gsplatam export" in printed and "evo_ape tum" in printed
     folder = run_folder(tmp_path, "r")
     for name in (
         "config.toml",
@@ -94,6 +127,14 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     assert metrics["frames"] == 6 and metrics["frames_this_run"] == 2
     assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 6
     assert len((folder / "frames.csv").read_text().splitlines()) == 1 + 6
+
+    camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
+    assert (camera["width"], camera["height"]) == (64, 48)
+    for fmt, default in EXPORT_FORMATS.items():
+        if fmt == "mesh" and importlib.util.find_spec("open3d") is None:
+            continue  # the mesh extra is absent (tests/io/test_exports.py says so)
+        assert main(["export", str(folder), "--to", fmt]) == 0
+        assert (folder / default).exists(), fmt
 
 
 @pytest.mark.slow

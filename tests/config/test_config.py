@@ -112,3 +112,41 @@ def test_live_input_defaults_to_the_preset_near_camera_rate() -> None:
     assert default_preset(torch.device("cuda")) == "base"
     assert default_preset(torch.device("cuda"), live=True) == "tiny"
     assert default_preset(torch.device("cpu")) == "tiny"
+
+
+def _every_key(config) -> list[str]:
+    """Dotted keys of every setting, from the TOML a run folder holds (its writer walks the schema)."""
+    import tomllib
+
+    keys = []
+    for name, value in tomllib.loads(to_toml(config)).items():
+        keys += [f"{name}.{key}" for key in value] if isinstance(value, dict) else [name]
+    return keys
+
+
+def test_the_config_command_lists_every_key_with_its_type_default_and_meaning(capsys) -> None:
+    from pipeline.app.cli import main
+    from pipeline.config.docs import config_sections
+
+    assert main(["config", "--preset", "tiny"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    config = preset_config("tiny")
+    docs = {k.key: k for section in config_sections(config) for k in section.keys}
+    assert sorted(docs) == sorted(_every_key(config))
+    for key, doc in docs.items():
+        assert doc.meaning and doc.type, key  # a comment on the field's line in schema.py
+        (line,) = [line for line in lines if line.split()[:1] == [key]]
+        assert doc.type in line and doc.default in line and doc.meaning in line
+    assert docs["tracking.iters"].default == "4" and docs["run.loader"].type == "pipelined|sync"
+    assert docs["mapping.prune_at"].type == "list of int"
+
+
+def test_the_config_command_shows_one_section_and_names_a_wrong_one(capsys) -> None:
+    from pipeline.app.cli import main
+
+    assert main(["config", "live"]) == 0
+    out = capsys.readouterr().out
+    assert "live.record" in out and "tracking.iters" not in out
+    assert main(["config", "trackin"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown config section 'trackin' (choose from dataset," in err[0]

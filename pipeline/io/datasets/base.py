@@ -15,6 +15,7 @@ from pipeline.config import DatasetConfig
 from pipeline.errors import DataError, UserError
 from pipeline.frame import Frame
 from pipeline.io.images import read_color, read_depth, resize_rgbd
+from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.trajectory import read_numeric_table
 
 
@@ -74,7 +75,7 @@ def read_intrinsics_file(folder: Path) -> np.ndarray | None:
 
 def write_intrinsics_file(folder: Path, intrinsics: np.ndarray) -> None:
     fx, fy, cx, cy = (float(v) for v in (intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]))
-    (folder / INTRINSICS_FILE).write_text(f"{fx!r} {fy!r} {cx!r} {cy!r}\n")
+    atomic_write_text(folder / INTRINSICS_FILE, f"{fx!r} {fy!r} {cx!r} {cy!r}\n")
 
 
 def relative_poses(c2w: np.ndarray) -> np.ndarray:

@@ -152,6 +152,30 @@ def _object_bounds(scene: Scene) -> list[tuple[str, torch.Tensor, torch.Tensor]]
     return objects
 
 
+def distance_to_surfaces(scene: Scene, points: torch.Tensor) -> torch.Tensor:
+    """Unsigned distance [N] (metres) from world points [N, 3] to the nearest surface of the
+    room: its walls, floor and ceiling, and every box, sphere and capped cylinder."""
+    lo = torch.tensor([-ROOM_HALF[0], -ROOM_HALF[1], 0.0])
+    hi = torch.tensor([ROOM_HALF[0], ROOM_HALF[1], ROOM_HEIGHT])
+    best = _box_distance(points, lo, hi)
+    for box in scene.boxes:
+        best = torch.minimum(best, _box_distance(points, box[:3], box[3:]))
+    for sphere in scene.spheres:
+        best = torch.minimum(best, ((points - sphere[:3]).norm(dim=1) - sphere[3]).abs())
+    for c in scene.cylinders:
+        radial = (points[:, :2] - c[:2]).norm(dim=1) - c[4]
+        axial = torch.maximum(c[2] - points[:, 2], points[:, 2] - c[3])
+        outside = torch.stack([radial, axial], dim=1).clamp(min=0).norm(dim=1)
+        best = torch.minimum(best, outside + torch.maximum(radial, axial).clamp(max=0).abs())
+    return best
+
+
+def _box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Unsigned distance [N] from points [N, 3] to the faces of the box [lo, hi]."""
+    q = (points - (lo + hi) / 2).abs() - (hi - lo) / 2
+    return q.clamp(min=0).norm(dim=1) + q.amax(dim=1).clamp(max=0).abs()
+
+
 def _screen_rect(
     bounds: torch.Tensor, w2c: torch.Tensor, intrinsics: np.ndarray, width: int, height: int
 ) -> tuple[int, int, int, int]:

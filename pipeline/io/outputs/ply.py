@@ -8,13 +8,12 @@ opacity as a logit; scales as logs (an isotropic scale repeated); rotations as (
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 import torch
 
 from pipeline.errors import DataError
-from pipeline.io.outputs.atomic import atomic_write
+from pipeline.io.outputs.atomic import atomic_write_bytes
 from pipeline.render.types import Gaussians
 
 SH_C0 = 0.28209479177387814
@@ -23,31 +22,56 @@ PROPERTIES = (
     + [f"scale_{i}" for i in range(3)]
     + [f"rot_{i}" for i in range(4)]
 )
+PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+
+
+def gaussian_columns(
+    gaussians: Gaussians, sh_rest: int = 0, normals: torch.Tensor | None = None
+) -> dict[str, np.ndarray]:
+    """The 3DGS properties in their usual order, one float32 column each: position, normal
+    (`normals` [N, 3], zeros without), SH DC, `sh_rest` higher-order SH coefficients (zeros),
+    opacity logit, log-scales, rotation (w, x, y, z)."""
+    n = len(gaussians)
+    blocks = {
+        "xyz": gaussians.means,
+        "n": normals if normals is not None else torch.zeros(n, 3),
+        "f_dc_": (gaussians.colors - 0.5) / SH_C0,
+        "f_rest_": torch.zeros(n, sh_rest),
+        "opacity": gaussians.opacity_logits[:, None],
+        "scale_": gaussians.log_scales.expand(-1, 3),
+        "rot_": gaussians.quats,
+    }
+    names = {"xyz": ["x", "y", "z"], "n": ["nx", "ny", "nz"], "opacity": ["opacity"]}
+    columns = {}
+    for prefix, block in blocks.items():
+        values = block.detach().cpu().float().numpy()
+        for i, name in enumerate(names.get(prefix) or [f"{prefix}{j}" for j in range(values.shape[1])]):
+            columns[name] = values[:, i]
+    return columns
+
+
+def ply_bytes(vertices: dict[str, np.ndarray], faces: np.ndarray | None = None) -> bytes:
+    """A binary little-endian PLY of named vertex columns (float32 or uint8 arrays of one
+    length) and optional triangles `faces` [F, 3] (vertex indices)."""
+    kinds = {np.dtype("<f4"): "float", np.dtype("u1"): "uchar"}
+    count = len(next(iter(vertices.values())))
+    table = np.empty(count, dtype=[(name, column.dtype.newbyteorder("<")) for name, column in vertices.items()])
+    for name, column in vertices.items():
+        table[name] = column
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {count}"]
+    header += [f"property {kinds[column.dtype]} {name}" for name, column in vertices.items()]
+    body = [table.tobytes()]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        packed = np.empty(len(faces), dtype=[("n", "u1"), ("indices", "<i4", (3,))])
+        packed["n"], packed["indices"] = 3, faces
+        body.append(packed.tobytes())
+    return ("\n".join(header + ["end_header"]) + "\n").encode("ascii") + b"".join(body)
 
 
 def write_ply(path: Path, gaussians: Gaussians) -> None:
-    """Write the map atomically (binary little-endian float32)."""
-    n = len(gaussians)
-    columns = {
-        "xyz": gaussians.means,
-        "normals": torch.zeros(n, 3),
-        "f_dc": (gaussians.colors - 0.5) / SH_C0,
-        "opacity": gaussians.opacity_logits[:, None],
-        "scale": gaussians.log_scales.expand(-1, 3),
-        "rot": gaussians.quats,
-    }
-    data = np.concatenate([c.detach().cpu().float().numpy() for c in columns.values()], axis=1).astype("<f4")
-    header = "\n".join(
-        ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-        + [f"property float {name}" for name in PROPERTIES]
-        + ["end_header"]
-    )
-
-    def write(f: IO[bytes]) -> None:
-        f.write((header + "\n").encode("ascii"))
-        f.write(data.tobytes())
-
-    atomic_write(path, write)
+    """Write the map atomically (the layout of the module docstring)."""
+    atomic_write_bytes(path, ply_bytes(gaussian_columns(gaussians)))
 
 
 def read_ply(path: Path) -> Gaussians:
@@ -63,15 +87,14 @@ def read_ply(path: Path) -> Gaussians:
     if "format binary_little_endian 1.0" not in header:
         raise DataError(f"{path}: only binary little-endian PLY is supported")
     count, names, types = 0, [], []
-    ply_types = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
     for line in header:
         parts = line.split()
         if parts[:2] == ["element", "vertex"]:
             count = int(parts[2])
         elif parts[:1] == ["property"] and len(parts) == 3:
-            if parts[1] not in ply_types:
+            if parts[1] not in PLY_TYPES:
                 raise DataError(f"{path}: unsupported property type {parts[1]}")
-            types.append(ply_types[parts[1]])
+            types.append(PLY_TYPES[parts[1]])
             names.append(parts[2])
     missing = [p for p in PROPERTIES if p not in names and not p.startswith("n")]
     if missing:

@@ -13,6 +13,7 @@ from pipeline.config import Config, to_toml
 from pipeline.errors import DataError
 from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.checkpoint import LEGACY_NAME, read_checkpoint, write_checkpoint
+from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics
 from pipeline.io.outputs.ply import write_ply
 from pipeline.io.trajectory import write_tum_trajectory
 from pipeline.render.types import Gaussians
@@ -40,6 +41,14 @@ class RunFolder:
         self.groundtruth = path / "groundtruth.txt"  # reference camera-to-world, TUM format
         self.map = path / "map.ply"
         self.checkpoint = path / "checkpoint.safetensors"
+        self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
+
+    @staticmethod
+    def existing(path: Path) -> RunFolder:
+        """A run folder written before (DataError when `path` holds no checkpoint)."""
+        if not (path / "checkpoint.safetensors").is_file():
+            raise DataError(f"{path} is not a run folder (no checkpoint.safetensors)")
+        return RunFolder(path)
 
     def write_config(self, config: Config) -> None:
         atomic_write_text(self.config, to_toml(config))
@@ -77,6 +86,9 @@ class RunFolder:
                 f"code): run the sequence again to get {self.checkpoint.name}"
             )
         return read_checkpoint(self.checkpoint)
+
+    def read_intrinsics(self) -> CameraIntrinsics:
+        return read_intrinsics(self.intrinsics)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         atomic_write_text(self.metrics, json.dumps(metrics, indent=2, sort_keys=True) + "\n")

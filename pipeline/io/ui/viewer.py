@@ -12,10 +12,11 @@ import logging
 import os
 import signal
 import threading
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from pipeline.io.ui.display import FrameView, MapView, follow_pose
 
 if TYPE_CHECKING:  # imported when a viewer is made: runs without one need no viser
     import viser
@@ -23,39 +24,8 @@ if TYPE_CHECKING:  # imported when a viewer is made: runs without one need no vi
 
 log = logging.getLogger("gsplatam")
 
-
-@dataclass
-class MapView:
-    """A map ready for viser, on the host."""
-
-    centers: np.ndarray  # [N, 3] float32 world metres
-    covariances: np.ndarray  # [N, 3, 3] float32 metres^2
-    rgbs: np.ndarray  # [N, 3] float32 in [0, 1]
-    opacities: np.ndarray  # [N, 1] float32 in [0, 1]
-
-
-@dataclass
-class FrameView:
-    """What the viewer shows of the latest processed frame (host arrays)."""
-
-    index: int
-    poses: np.ndarray  # [F, 4, 4] estimated camera-to-world of every frame so far
-    intrinsics: np.ndarray  # [3, 3] pixels
-    color: np.ndarray  # [H, W, 3] uint8 input colour
-    depth: np.ndarray  # [H, W, 3] uint8 input depth, colour-mapped
-    rendered_depth: np.ndarray  # [H, W, 3] uint8 colour-mapped, at the latest estimated pose
-    silhouette: np.ndarray  # [H, W, 3] uint8
-    stats: str  # markdown
-
-
-def colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:
-    """Depth [H, W] metres -> [H, W, 3] uint8 (turbo colour map, black where 0)."""
-    import cv2
-
-    scaled = np.clip(depth / max(far, 1e-6) * 255.0, 0, 255).astype(np.uint8)
-    rgb = cv2.cvtColor(cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
-    rgb[depth <= 0] = 0
-    return rgb
+FOLLOW_BACK_M = 0.6  # the follow camera sits this far behind the current camera
+FOLLOW_UP_M = 0.25  # and this far above it
 
 
 def _se3(c2w: np.ndarray) -> vtf.SE3:
@@ -65,16 +35,10 @@ def _se3(c2w: np.ndarray) -> vtf.SE3:
 
 
 class Viewer:
-    """A viser server with the scene and the controls. Every method may be called from any
-    thread (viser queues messages to its own event loop)."""
+    """A viser server with the scene and the controls (a MapDisplay). Every method may be called
+    from any thread (viser queues messages to its own event loop)."""
 
-    def __init__(
-        self,
-        host: str,
-        port: int,
-        title: str,
-        live: bool = True,
-    ) -> None:
+    def __init__(self, host: str, port: int, title: str, live: bool = True) -> None:
         """`live`: the latest frame's images and the pause, save and stop buttons (for a running
         SLAM; not for a saved map)."""
         import viser
@@ -85,6 +49,8 @@ class Viewer:
         self.running = threading.Event()  # cleared while paused
         self.running.set()
         self.save_requested = threading.Event()
+        self.stopped = threading.Event()
+        self._finished = False  # the run is over: Stop closes the viewer instead of stopping SLAM
         gui = self.server.gui
         self.stats = gui.add_markdown("waiting for the first frame")
         self.follow = gui.add_checkbox("Follow camera", initial_value=False)
@@ -93,13 +59,15 @@ class Viewer:
             self.pause = gui.add_button("Pause SLAM")
             self.pause.on_click(lambda _: self._toggle_pause())
             gui.add_button("Save map now").on_click(lambda _: self.save_requested.set())
+            self.save_status = gui.add_markdown("")
             gui.add_button("Stop").on_click(lambda _: self.request_stop())
             blank = np.zeros((2, 2, 3), np.uint8)
             self.images = {
                 name: gui.add_image(blank, label=name, format="jpeg")
                 for name in ("input colour", "input depth", "rendered depth", "silhouette")
             }
-        self._camera_pose: vtf.SE3 | None = None  # the latest estimate: where a new browser starts
+        self._camera_pose: vtf.SE3 | None = None  # where a new browser starts
+        self._look_at: np.ndarray | None = None
         self.server.on_client_connect(self._place_camera)
         log.info("viewer: %s", self.url)
 
@@ -108,6 +76,8 @@ class Viewer:
             with client.atomic():
                 client.camera.wxyz = self._camera_pose.rotation().wxyz
                 client.camera.position = self._camera_pose.translation()
+                if self._look_at is not None:
+                    client.camera.look_at = self._look_at
 
     def _toggle_pause(self) -> None:
         if self.running.is_set():
@@ -118,9 +88,11 @@ class Viewer:
             self.pause.label = "Pause SLAM"
 
     def request_stop(self) -> None:
-        """Finish the run cleanly, as Ctrl-C would."""
+        """During the run: finish it cleanly, as Ctrl-C would. After it: close the viewer."""
         self.running.set()
-        os.kill(os.getpid(), signal.SIGINT)
+        self.stopped.set()
+        if not self._finished:
+            os.kill(os.getpid(), signal.SIGINT)
 
     def show_map(self, view: MapView) -> None:
         self.server.scene.add_gaussian_splats("/map", view.centers, view.covariances, view.rgbs, view.opacities)
@@ -151,11 +123,22 @@ class Viewer:
         for name, image in images.items():
             self.images[name].image = image
         if self.follow.value or self._camera_pose is None:
-            self.look_from(view.poses[-1])
+            self.look_from(follow_pose(view.poses[-1], FOLLOW_BACK_M, FOLLOW_UP_M), view.poses[-1][:3, 3])
 
-    def look_from(self, c2w: np.ndarray) -> None:
-        """Put every browser's camera (and any that connects later) at `c2w` [4, 4]."""
+    def show_saved(self, message: str) -> None:
+        self.save_status.content = message
+        for client in self.server.get_clients().values():
+            client.add_notification("Saved", message, auto_close_seconds=5.0)
+
+    def show_summary(self, markdown: str) -> None:
+        self._finished = True
+        self.stats.content = markdown
+
+    def look_from(self, c2w: np.ndarray, target: np.ndarray | None = None) -> None:
+        """Put every browser's camera (and any that connects later) at `c2w` [4, 4], turning
+        about `target` [3] (world metres) when given."""
         self._camera_pose = _se3(c2w)
+        self._look_at = target
         for client in self.server.get_clients().values():
             self._place_camera(client)
 

@@ -24,7 +24,7 @@ from pipeline.config import Config, RenderConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, quat_to_rotmat
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.viewer import FrameView, MapView, Viewer, colorize_depth
+from pipeline.io.ui.display import FrameView, MapDisplay, MapView, colorize_depth
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.results import FrameResult
@@ -33,6 +33,7 @@ from pipeline.slam.splatam import SplaTAM
 log = logging.getLogger("gsplatam")
 
 DISPLAY_WIDTH = 320  # pixels: the images in the viewer's panel (and the frustum's) are this wide at most
+RECONNECT_GRACE_S = 5.0  # after the run, the viewer closes once nobody has watched for this long
 
 
 def map_view(gaussians: Gaussians) -> MapView:
@@ -66,11 +67,13 @@ def _to_u8(image: torch.Tensor) -> np.ndarray:
 
 class ViewerFeed:
     """The SLAM-stage observer that feeds `viewer`; also carries out its pause and save buttons
-    (pausing holds SLAM at a frame boundary; saving writes map.ply from a host copy in a thread)."""
+    (pausing holds SLAM at a frame boundary; saving writes map.ply from a host copy in a thread).
+    After the run it shows the final map (`finish`) and keeps it up (`linger`) until the user
+    closes the page or window or presses Stop."""
 
     def __init__(
         self,
-        viewer: Viewer,
+        viewer: MapDisplay,
         renderer: Renderer,
         render: RenderConfig,
         max_hz: float,
@@ -91,6 +94,7 @@ class ViewerFeed:
         self._previous_frame_at: float | None = None
         self._fps = 0.0
         self._stream: torch.cuda.Stream | None = None
+        self._latest: tuple[SplaTAM, DeviceFrame, FrameResult] | None = None
         self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
         self._thread.start()
 
@@ -99,6 +103,7 @@ class ViewerFeed:
         if self._previous_frame_at is not None:
             self._fps = 1.0 / max(now - self._previous_frame_at, 1e-9)
         self._previous_frame_at = now
+        self._latest = (slam, frame, result)
         while not self.viewer.running.wait(0.2) and not self.released.is_set():
             pass  # paused from the browser
         if self.viewer.save_requested.is_set() and slam.gaussians is not None:
@@ -110,6 +115,11 @@ class ViewerFeed:
         if not self.viewer.clients():
             return  # nobody is watching: no snapshot
         self._last = now
+        self._handoff.put_nowait(self._snapshot(slam, frame, result))
+
+    def _snapshot(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> Snapshot:
+        """Clones of the map and poses on the device (then SLAM may go on)."""
+        assert slam.gaussians is not None
         cuda = frame.depth.is_cuda
         snapshot = Snapshot(
             gaussians=copied(slam.gaussians),
@@ -124,14 +134,48 @@ class ViewerFeed:
             if self._stream is None:
                 self._stream = torch.cuda.Stream(frame.depth.device)
         self.snapshots += 1
-        self._handoff.put_nowait(snapshot)
+        return snapshot
+
+    def finish(self) -> None:
+        """SLAM has stopped: show its final state, map included (the last frames may not have been
+        shown), and let a paused SLAM go."""
+        self.released.set()
+        if self._latest is None or self._latest[0].gaussians is None:
+            return
+        self._map_sent = -float("inf")
+        with contextlib.suppress(queue.Empty):
+            self._handoff.get_nowait()  # an older snapshot not yet shown
+        self._handoff.put(self._snapshot(*self._latest))
+
+    def linger(self, summary: str) -> None:
+        """Show `summary` and wait while someone watches, until Stop, the page or window closed
+        (for RECONNECT_GRACE_S, so a reload does not end it) or Ctrl-C."""
+        self.viewer.show_summary(summary)
+        if self.viewer.stopped.is_set() or not self.viewer.clients():
+            return
+        log.info("viewer: the run is over; the final map stays up until the page is closed or Stop is pressed")
+        unwatched_since: float | None = None
+        try:
+            while not self.viewer.stopped.wait(0.5):
+                if self.viewer.clients():
+                    unwatched_since = None
+                elif unwatched_since is None:
+                    unwatched_since = time.monotonic()
+                elif time.monotonic() - unwatched_since >= RECONNECT_GRACE_S:
+                    return
+        except KeyboardInterrupt:
+            return
 
     def _save(self, gaussians: Gaussians) -> None:
         try:
             self.folder.write_map(gaussians)
-            log.info("viewer: saved %d Gaussians to %s", len(gaussians), self.folder.map)
         except OSError as exc:
             log.error("viewer: saving %s failed: %s", self.folder.map, exc)
+            self.viewer.show_saved(f"saving {self.folder.map} failed: {exc}")
+            return
+        message = f"saved {len(gaussians):,} Gaussians to {self.folder.map} at {time.strftime('%H:%M:%S')}"
+        log.info("viewer: %s", message)
+        self.viewer.show_saved(message)
 
     def _work(self) -> None:
         while (snapshot := self._handoff.get()) is not None:
@@ -187,7 +231,9 @@ class ViewerFeed:
         )
 
     def close(self) -> None:
-        """Stop the viewer thread after the update in progress, then the web server."""
+        """Stop the viewer thread after the update in progress, then the viewer; safe twice."""
+        if not self._thread.is_alive():
+            return
         self.released.set()
         with contextlib.suppress(queue.Empty):
             self._handoff.get_nowait()  # a snapshot not yet shown is dropped
@@ -197,11 +243,20 @@ class ViewerFeed:
 
 
 def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> ViewerFeed | None:
-    """Start the viewer when `config.viewer.enabled`; -> the observer to give the SLAM stage."""
+    """Start the viewer of `config.viewer.kind` when `config.viewer.enabled`; -> the observer to
+    give the SLAM stage."""
     if not config.viewer.enabled:
         return None
-    viewer = Viewer(config.viewer.host, config.viewer.port, title)
     v = config.viewer
+    viewer: MapDisplay
+    if v.kind == "open3d":
+        from pipeline.io.ui.open3d_viewer import Open3DViewer
+
+        viewer = Open3DViewer(title)
+    else:
+        from pipeline.io.ui.viewer import Viewer
+
+        viewer = Viewer(v.host, v.port, title)
     return ViewerFeed(viewer, slam.renderer, config.render, v.max_hz, folder, v.map_every_s)
 
 

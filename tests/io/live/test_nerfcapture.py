@@ -18,7 +18,7 @@ import pytest
 import torch
 from live_helpers import free_port, read_status, wait_for
 
-from pipeline.app.serve import live_ate_cm
+from pipeline.app.cli import main
 from pipeline.config import DatasetConfig, SyntheticConfig
 from pipeline.io.datasets.base import Dataset
 from pipeline.io.datasets.loader import open_dataset
@@ -32,6 +32,7 @@ from pipeline.io.live.nerfcapture import (
     sample_from_frame,
 )
 from pipeline.slam.results import FrameResult
+from pipeline.stages.sinks import ate_so_far_cm
 
 
 @pytest.fixture(scope="module")
@@ -130,9 +131,9 @@ def test_live_ate_is_a_root_mean_square_over_frames_with_a_reference() -> None:
         ref[1, 3] += offset
         return FrameResult(i, 0.0, c2w, {}, 0, 0, 0.0, 1.0, c2w_gt=ref if gt else None)
 
-    assert live_ate_cm([result(i, 0.0, False) for i in range(5)]) is None
+    assert ate_so_far_cm([result(i, 0.0, False) for i in range(5)]) is None
     errors = [0.0, 0.02, -0.02, 0.0, 0.0]
-    ate = live_ate_cm([result(i, e, True) for i, e in enumerate(errors)])
+    ate = ate_so_far_cm([result(i, e, True) for i, e in enumerate(errors)])
     assert ate is not None and 0.0 < ate <= 100 * np.sqrt(np.mean(np.square(errors)))
 
 
@@ -177,7 +178,7 @@ def test_live_reconstruction_from_the_fake_publisher(
     command = [
         sys.executable, "-m", "pipeline", *how, "--device", "cpu", "--preset", "tiny",
         "--output", str(tmp_path), "--name", "live", "--quiet", "--set", f"live.status_port={status_port}",
-        "--set", f"live.dds_domain={dds_domain}",
+        "--set", f"live.dds_domain={dds_domain}", "--set", "live.record=true",
     ]  # fmt: skip
     stop = threading.Event()
     publisher = threading.Thread(target=publish_dataset, args=(capture_dataset, 2.0, 60.0, stop, dds_domain))
@@ -199,6 +200,14 @@ def test_live_reconstruction_from_the_fake_publisher(
     by_time = {round(r.timestamp, 6): r.c2w_gt for r in capture_dataset.refs}
     reference = np.stack([by_time[round(t, 6)][:3, 3] for t in rows[:, 0]])
     assert np.sqrt(np.mean(np.sum((rows[:, 1:4] - reference) ** 2, axis=1))) < 0.05  # metres, no alignment
+
+    recording = open_dataset(DatasetConfig(path=str(tmp_path / "live" / "recording")))  # live.record
+    assert recording.format == "tum" and len(recording) >= metrics["frames"]
+    assert all(ref.c2w_gt is not None for ref in recording.refs)  # the phone's poses, as groundtruth.txt
+    if how[0] == "serve":  # the recording re-runs offline
+        offline = ["run", str(tmp_path / "live" / "recording"), "--preset", "tiny", "--output", str(tmp_path)]
+        assert main([*offline, "--name", "offline", "--set", "dataset.end=3", "--quiet"]) == 0
+        assert json.loads((tmp_path / "offline" / "metrics.json").read_text())["ate"] is not None
 
 
 @pytest.mark.live

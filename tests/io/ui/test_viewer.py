@@ -53,11 +53,21 @@ class FakeViewer:
         self.running = threading.Event()
         self.running.set()
         self.save_requested = threading.Event()
+        self.stopped = threading.Event()
+        self.watching = 1
         self.maps: list = []
         self.frames: list = []
+        self.saved: list[str] = []
+        self.summary = ""
 
     def clients(self) -> int:
-        return 1
+        return self.watching
+
+    def show_saved(self, message: str) -> None:
+        self.saved.append(message)
+
+    def show_summary(self, markdown: str) -> None:
+        self.summary = markdown
 
     def show_map(self, view) -> None:
         self.maps.append(view)
@@ -156,18 +166,93 @@ def test_save_now_writes_the_map_without_waiting_for_the_end(slam_like: FakeSlam
         time.sleep(0.05)
     feed.close()
     assert folder.map.exists() and not viewer.save_requested.is_set()
+    assert len(viewer.saved) == 1 and viewer.saved[0].startswith("saved 10 Gaussians to ")  # confirmed in the page
 
 
-def _launch_browser():
+def _wait(predicate, seconds: float = 10.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+def test_finish_shows_the_final_frame_and_map_even_between_snapshots(slam_like: FakeSlam, tmp_path: Path) -> None:
+    viewer = FakeViewer()
+    feed = ViewerFeed(viewer, _renderer(), RenderConfig(), max_hz=0.001, folder=RunFolder(tmp_path), map_every_s=1e9)
+    for i in range(4):
+        feed(slam_like, _frame(i), _result(i))
+    _wait(lambda: len(viewer.frames) == 1)
+    assert [f.index for f in viewer.frames] == [0] and len(viewer.maps) == 1  # rate-limited: frames 1-3 not shown
+    slam_like.gaussians.means.add_(1.0)
+    feed.finish()
+    _wait(lambda: len(viewer.frames) == 2)
+    feed.close()
+    assert viewer.frames[-1].index == 3 and len(viewer.maps) == 2  # the final map, though maps were rate-limited
+    assert viewer.maps[-1].centers[:, 2].min() > 2.9  # as SLAM left it
+    assert feed.released.is_set()
+
+
+def test_linger_waits_for_stop_or_for_the_watchers_to_leave(slam_like: FakeSlam, tmp_path: Path, monkeypatch) -> None:
+    import threading
+
+    import pipeline.io.ui.viewer_feed as viewer_feed
+
+    viewer = FakeViewer()
+    feed = ViewerFeed(viewer, _renderer(), RenderConfig(), max_hz=0.001, folder=RunFolder(tmp_path))
+    viewer.watching = 0
+    feed.linger("**run finished**")  # nobody watches: no wait
+    assert viewer.summary == "**run finished**"
+
+    viewer.watching = 1
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (feed.linger("done"), done.set()))
+    worker.start()
+    assert not done.wait(0.8)  # someone watches: the final map stays
+    viewer.stopped.set()  # Stop pressed
+    assert done.wait(5)
+
+    monkeypatch.setattr(viewer_feed, "RECONNECT_GRACE_S", 0.5)
+    viewer.stopped.clear()
+    done.clear()
+    worker = threading.Thread(target=lambda: (feed.linger("done"), done.set()))
+    worker.start()
+    assert not done.wait(0.8)
+    viewer.watching = 0  # the page was closed
+    assert done.wait(5)
+    feed.close()
+    feed.close()  # idempotent
+
+
+def test_the_follow_view_sits_behind_and_above_the_camera() -> None:
+    from pipeline.io.ui.display import follow_pose
+
+    c2w = np.eye(4)
+    c2w[:3, :3] = cv2.Rodrigues(np.array([0.1, 0.7, -0.2]))[0]
+    c2w[:3, 3] = [1.0, 2.0, 3.0]
+    view = follow_pose(c2w, back_m=0.6, up_m=0.25)
+    assert np.allclose(view[:3, :3], c2w[:3, :3])  # looking the same way
+    offset = np.linalg.inv(c2w)[:3, :3] @ (view[:3, 3] - c2w[:3, 3])  # in the camera's axes (y down, z forward)
+    assert np.allclose(offset, [0.0, -0.25, -0.6])
+
+
+@pytest.fixture
+def browser():
+    """Headless Chromium, closed whatever the test does (Playwright's sync API holds an event loop
+    in this thread until it stops: left running, it breaks every later asyncio test)."""
     if CHROMIUM is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)")
     playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     manager = playwright_api.sync_playwright().start()
-    browser = manager.chromium.launch(
-        executable_path=CHROMIUM,
-        args=["--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-    )
-    return manager, browser
+    try:
+        chromium = manager.chromium.launch(
+            executable_path=CHROMIUM,
+            args=["--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+        )
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+    finally:
+        manager.stop()
 
 
 def _frame_number(page) -> int | None:
@@ -183,8 +268,7 @@ def _canvas_is_drawn(page, path: Path) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.live
-def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(tmp_path: Path) -> None:
-    manager, browser = _launch_browser()
+def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser, tmp_path: Path) -> None:
     port = free_port()
     log_path = tmp_path / "run.log"
     command = [
@@ -232,8 +316,6 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(tmp_pat
     finally:
         viewing.send_signal(signal.SIGINT)
         assert viewing.wait(timeout=30) == 0
-        browser.close()
-        manager.stop()
 
 
 def test_view_rejects_a_missing_map(tmp_path: Path, capsys) -> None:
@@ -258,3 +340,24 @@ def test_a_common_3dgs_ply_with_extra_properties_is_viewable(tmp_path: Path) -> 
     (tmp_path / "3dgs.ply").write_bytes(("\n".join(lines) + "\n").encode() + extra.tobytes())
     view = map_view(read_ply(tmp_path / "3dgs.ply"))
     assert np.allclose(view.centers, replace(g).means.numpy(), atol=1e-6)
+
+
+def test_the_web_viewer_takes_a_frame_a_save_and_the_summary_without_a_browser() -> None:
+    from pipeline.io.ui.display import FrameView
+    from pipeline.io.ui.viewer import Viewer
+
+    viewer = Viewer("127.0.0.1", free_port(), "test")
+    try:
+        image = np.zeros((12, 16, 3), np.uint8)
+        poses = np.stack([np.eye(4), np.eye(4)])
+        poses[1, 0, 3] = 0.1
+        k = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+        viewer.show_frame(FrameView(1, poses, k, image, image, image, image, "**frame 1**"))
+        viewer.show_saved("saved 10 Gaussians to map.ply")
+        assert viewer.save_status.content == "saved 10 Gaussians to map.ply"
+        viewer.show_summary("**run finished**")
+        assert viewer.stats.content == "**run finished**" and viewer.clients() == 0
+        viewer.request_stop()  # after the run: closes the viewer, sends no signal
+        assert viewer.stopped.is_set()
+    finally:
+        viewer.close()

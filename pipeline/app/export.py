@@ -1,0 +1,91 @@
+"""The `export` command: a run folder -> a nerfstudio dataset, `.splat`, a full 3DGS PLY, a mesh
+or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from pipeline.config import load_config
+from pipeline.devices import resolve_device
+from pipeline.errors import DataError, UserError
+from pipeline.geometry import invert_pose
+from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports.full_ply import write_full_ply
+from pipeline.io.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
+from pipeline.io.outputs.exports.nerfstudio import write_nerfstudio
+from pipeline.io.outputs.exports.pointcloud import write_pointcloud
+from pipeline.io.outputs.exports.splat import write_splat
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.render import Camera, make_renderer
+from pipeline.slam.gaussian_map import copied
+from pipeline.slam.state import Checkpoint
+
+MESH_MIN_SILHOUETTE = 0.9  # rendered depth is fused only where the map covers the pixel at least this much
+MESH_DEPTH_MARGIN = 1.2  # depths beyond this x the deepest keyframe depth are left out of the fusion
+
+
+@dataclass
+class Exported:
+    path: Path  # the file or folder written
+    summary: str  # what it holds, one line
+
+
+def export_run(
+    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: str = "auto"
+) -> Exported:
+    """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: FORMATS[fmt]
+    inside the run folder)."""
+    if voxel_m <= 0:
+        raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
+    folder = RunFolder.existing(run_dir)
+    checkpoint, _ = folder.read_checkpoint()
+    target = output or folder.path / FORMATS[fmt]
+    target.parent.mkdir(parents=True, exist_ok=True)
+    gaussians = checkpoint.gaussians
+    if fmt == "nerfstudio":
+        write_nerfstudio(target, checkpoint.keyframes, folder.read_intrinsics(), gaussians)
+        return Exported(target, f"{len(checkpoint.keyframes)} keyframes with depth, transforms.json")
+    if fmt == "splat":
+        write_splat(target, gaussians)
+        return Exported(target, f"{len(gaussians):,} Gaussians, 32 bytes each")
+    if fmt == "ply":
+        write_full_ply(target, gaussians, load_config(config_file=folder.config).gaussians.kind)
+        return Exported(target, f"{len(gaussians):,} Gaussians with normals and f_rest_* (zeros)")
+    if fmt == "pointcloud":
+        write_pointcloud(target, gaussians)
+        return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")
+    mesh = fuse_tsdf(
+        _rendered_views(folder, checkpoint, device), folder.read_intrinsics(), voxel_m, _max_depth(checkpoint)
+    )
+    if len(mesh.triangles) == 0:
+        raise DataError(f"the map of {run_dir} gives an empty mesh at {voxel_m} m voxels")
+    write_mesh_ply(target, mesh)
+    return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
+
+
+def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str) -> Iterator[RGBDView]:
+    """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
+    asks for the next when it has integrated the last); depth kept where the map covers the
+    pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
+    config = load_config(config_file=folder.config)
+    device = resolve_device(device_name)
+    renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
+    camera = folder.read_intrinsics()
+    k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
+    gaussians = copied(checkpoint.gaussians, device)
+    for keyframe in checkpoint.keyframes:
+        with torch.no_grad():
+            c2w = keyframe.c2w.to(device).float()
+            view = Camera(invert_pose(c2w), k, camera.width, camera.height, config.render.near, config.render.far)
+            out = renderer(gaussians, view)
+            depth = torch.where(out.silhouette >= MESH_MIN_SILHOUETTE, out.depth, torch.zeros_like(out.depth))
+            color = (out.color.clamp(0, 1) * 255).round().to(torch.uint8)
+        yield RGBDView(color.cpu().numpy(), depth.cpu().numpy(), c2w.double().cpu().numpy())
+
+
+def _max_depth(checkpoint: Checkpoint) -> float:
+    return MESH_DEPTH_MARGIN * max(float(k.depth.max()) for k in checkpoint.keyframes)

@@ -1,0 +1,60 @@
+"""The `view` command: a saved map (a run folder or a 3DGS PLY) in the browser or an Open3D window."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io.outputs.ply import read_ply
+from pipeline.io.trajectory import read_tum_trajectory
+from pipeline.io.ui.display import follow_pose
+from pipeline.io.ui.viewer_feed import map_view
+
+OVERVIEW_BACK_M = 1.5  # a saved map is first seen from this far behind the first camera
+OVERVIEW_UP_M = 0.5
+
+
+def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
+    """Show the map (and the trajectory beside a run folder's map) until Ctrl-C or the window closes."""
+    ply = path / "map.ply" if path.is_dir() else path
+    if not ply.is_file():
+        raise UserError(f"no map to show: {ply} does not exist")
+    gaussians = read_ply(ply)
+    trajectory = path / "trajectory.txt"
+    poses = read_tum_trajectory(trajectory)[1] if path.is_dir() and trajectory.is_file() else np.zeros((0, 4, 4))
+    start = follow_pose(poses[0], OVERVIEW_BACK_M, OVERVIEW_UP_M) if len(poses) else None
+    title = f"gsplatam: {ply}"
+    if open3d:
+        from pipeline.io.ui.open3d_viewer import Open3DViewer
+
+        window = Open3DViewer(title, live=False)
+        window.show_map(map_view(gaussians))
+        window.show_trajectory(poses)
+        if start is not None:
+            window.look_from(start)
+        print(f"showing {len(gaussians):,} Gaussian centres from {ply} in an Open3D window (close it to quit)")
+        try:
+            window.wait_closed()
+        except KeyboardInterrupt:
+            pass  # a way to quit
+        finally:
+            window.close()
+        return
+    from pipeline.io.ui.viewer import Viewer
+
+    viewer = Viewer(host, port, title, live=False)
+    viewer.show_map(map_view(gaussians))
+    viewer.show_trajectory(poses)
+    if start is not None:
+        viewer.look_from(start, poses[0][:3, 3])
+    viewer.stats.content = f"{len(gaussians):,} Gaussians from {ply}"
+    print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)")
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass  # the way to quit
+    finally:
+        viewer.close()

@@ -1,0 +1,27 @@
+"""The optional parts of the install: which extra brings which module, and the line that says so."""
+
+from __future__ import annotations
+
+# top-level module -> the extra of pyproject.toml that installs it
+EXTRA_OF_MODULE = {
+    "aiortc": "live",
+    "aioice": "live",
+    "av": "live",
+    "aiohttp": "live",
+    "cyclonedds": "live",
+    "viser": "viewer",
+    "open3d": "mesh",
+}
+
+
+def missing_extra(exc: ImportError) -> str | None:
+    """One line naming the pip command when `exc` is a module of an extra that is not installed;
+    None for any other import error."""
+    module = (exc.name or "").split(".")[0]
+    extra = EXTRA_OF_MODULE.get(module)
+    if extra is None:
+        return None
+    return (
+        f"this needs {module}, from the '{extra}' extra: pip install 'gsplatam[{extra}]' "
+        f"(in a checkout: pip install -e '.[{extra}]')"
+    )

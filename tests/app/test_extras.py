@@ -1,0 +1,82 @@
+"""The base install: offline datasets run without the extras; a missing extra is one line naming
+its pip command. The extras' modules are hidden from a subprocess by an import hook."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+from pipeline.extras import EXTRA_OF_MODULE
+
+HIDE_EXTRAS = f"""
+import importlib.abc, sys
+class HideExtras(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {sorted(EXTRA_OF_MODULE)!r}:
+            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        return None
+sys.meta_path.insert(0, HideExtras())
+from pipeline.app.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _gsplatam_without_extras(*argv: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-c", HIDE_EXTRAS, *argv], env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+@pytest.mark.parametrize(
+    "argv, extra",
+    [
+        (["serve", "--record3d", "http://127.0.0.1:9"], "live"),
+        (["run", "SEQUENCE", "--viewer", "--set", "dataset.end=1", "--output", "OUT"], "viewer"),
+        (["view", "MAP"], "viewer"),
+    ],
+)
+def test_a_missing_extra_is_one_line_naming_its_pip_command(
+    argv: list[str], extra: str, replica_seq: Path, tmp_path: Path
+) -> None:
+    if argv[0] == "view":
+        argv = ["view", str(_a_map(tmp_path))]
+    done = _gsplatam_without_extras(
+        *[a.replace("SEQUENCE", str(replica_seq)).replace("OUT", str(tmp_path)) for a in argv]
+    )
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert err[-1].startswith("gsplatam: error: this needs ") and f"pip install 'gsplatam[{extra}]'" in err[-1]
+    assert "Traceback" not in done.stderr
+
+
+def _a_map(folder: Path) -> Path:
+    import torch
+
+    from pipeline.io.outputs.ply import write_ply
+    from pipeline.render import Gaussians
+
+    one = Gaussians(
+        torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.zeros(1, 1), torch.zeros(1), torch.zeros(1, 3)
+    )
+    write_ply(folder / "map.ply", one)
+    return folder / "map.ply"
+
+
+@pytest.mark.slow
+def test_the_base_install_runs_a_dataset_and_exports_it(replica_seq: Path, tmp_path: Path) -> None:
+    done = _gsplatam_without_extras(
+        "run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path), "--name", "base", "--quiet",
+        "--set", "dataset.end=3",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (tmp_path / "base" / "metrics.json").is_file()
+    exported = _gsplatam_without_extras("export", str(tmp_path / "base"), "--to", "splat")
+    assert exported.returncode == 0 and (tmp_path / "base" / "map.splat").is_file()
+    mesh = _gsplatam_without_extras("export", str(tmp_path / "base"), "--to", "mesh")
+    assert mesh.returncode == 2 and "pip install 'gsplatam[mesh]'" in mesh.stderr.strip().splitlines()[-1]
