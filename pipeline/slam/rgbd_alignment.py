@@ -60,9 +60,9 @@ class SourcePoints(NamedTuple):
 class TargetMaps(NamedTuple):
     """One pyramid level of the render, as maps sampled at projected points."""
 
-    maps: (
-        torch.Tensor
-    )  # [10, h, w]: vertex xyz (target camera, m), normal xyz, intensity, d/du, d/dv, validity (eroded)
+    # [10, h, w]: vertex xyz (target camera, metres), unit normal xyz, intensity, its gradient
+    # d/du and d/dv (per pixel), validity (eroded); see the channel slices above
+    maps: torch.Tensor
     intrinsics: torch.Tensor  # [3, 3] at this level
 
 
