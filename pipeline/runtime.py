@@ -23,7 +23,7 @@ from torch.profiler import record_function
 from pipeline.errors import StageFailure
 from pipeline.frame import Frame
 from pipeline.source import Source
-from pipeline.stages.queues import END, Policy, StageQueue
+from pipeline.stages.queues import END, EndOfStream, Policy, StageQueue, StreamFailed
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStep
 from pipeline.stages.stage import StageStats, frame_index, transform_stage
@@ -103,33 +103,38 @@ def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, st
     return report
 
 
-async def _pump(source: AsyncIterable[Any], outbox: StageQueue[Any]) -> None:
+async def _pump(source: AsyncIterable[Any], outbox: StageQueue[Any]) -> EndOfStream:
     try:
         async for item in source:
             await outbox.put(item)
     except Exception as exc:
-        raise StageFailure("source", None, exc) from exc
+        return StreamFailed(StageFailure("source", None, exc))
+    return END
 
 
 async def _feed(source: AsyncIterable[Any], outbox: StageQueue[Any], stop: asyncio.Event) -> None:
-    """Move the source's items into `outbox` until it ends or `stop` is set, then END. A live
-    source may wait for input forever: `stop` cancels that wait."""
+    """Move the source's items into `outbox` until it ends or `stop` is set, then the end
+    marker. A live source may wait for input forever: `stop` cancels that wait."""
     pump = asyncio.create_task(_pump(source, outbox))
     halt = asyncio.create_task(stop.wait())
+    end: EndOfStream = END
     try:
         await asyncio.wait({pump, halt}, return_when=asyncio.FIRST_COMPLETED)
+        if pump.done():
+            end = pump.result()
     finally:
         halt.cancel()
         pump.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await pump
-    await outbox.put(END)
+    await outbox.put(end)
 
 
 async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     """Run the pipelined graph to the end of the source, or until `stop` is set (then the
-    frame in SLAM finishes and the rest is left). A failing stage stops everything and its
-    StageFailure is raised."""
+    frame in SLAM finishes and the rest is left). A stage failing before SLAM (a frame that
+    cannot be read) ends the stream at that frame: SLAM and the sink finish the frames before
+    it, then its StageFailure is raised. A failing SLAM step or sink stops everything at once."""
     q = graph.queue_size
     refs: StageQueue[Any] = StageQueue(q, graph.source_policy)
     frames: StageQueue[Any] = StageQueue(q)
@@ -152,7 +157,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             slam = group.create_task(dedicated_thread_stage("slam", graph.slam, uploaded, results, stats[2], stop))
             group.create_task(graph.sink.drain(results))
             upstream += [group.create_task(service(stop)) for service in graph.services]
-            await slam
+            end = await slam
             for task in upstream:
                 task.cancel()
     except* StageFailure as failures:
@@ -160,6 +165,8 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     finally:
         for pool in pools:
             pool.shutdown(wait=True, cancel_futures=True)
+    if isinstance(end, StreamFailed):
+        raise end.failure
     wall = time.perf_counter() - start
     report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
     report.queues = {name: {"max_depth": q.max_depth, "dropped": q.dropped} for name, q in graph.queues.items()}
@@ -195,7 +202,8 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
 
 
 def execute(graph: Graph, loader: str) -> RuntimeReport:
-    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly."""
+    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly.
+    The handlers in place before are back afterwards."""
     if loader == "sync":
         stop = threading.Event()
         previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -208,13 +216,15 @@ def execute(graph: Graph, loader: str) -> RuntimeReport:
     async def main() -> RuntimeReport:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        for sig in previous:
             loop.add_signal_handler(sig, stop.set)
         try:
             return await run_graph(graph, stop)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            for sig, handler in previous.items():
+                loop.remove_signal_handler(sig)  # which leaves the default handler, not the previous one
+                signal.signal(sig, handler)
 
     if HAVE_UVLOOP:
         return uvloop.run(main())

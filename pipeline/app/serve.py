@@ -16,15 +16,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from pipeline.app.report import timing_summary, versions
-from pipeline.app.session import Session, complete_config, execute_session, open_session
+from pipeline.app.run_folders import new_run_folder
+from pipeline.app.session import Session, complete_config, describe_run, execute_session, open_session
+from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.status_http import serve_status
 from pipeline.metrics import absolute_trajectory_error
-from pipeline.runtime import Graph
+from pipeline.runtime import Graph, RuntimeReport
 from pipeline.slam.splatam import FrameResult
 from pipeline.source import Source
 
@@ -72,31 +75,51 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
             "ate_rmse_cm": live_ate_cm(results),
+            "save_error": session.saver.error or None,
+            "saved_frames": session.saver.saved_frames,
         }
 
     return read
 
 
-def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
-    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the end."""
+def serve(config: Config, source: Source, progress: bool = True, overwrite: bool = False) -> ServeResult:
+    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the
+    end, into a new run folder (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save
+    that fails (a full disk) is reported once in the log and the status and SLAM goes on; a
+    final save that fails raises OutputError (the last complete save stays)."""
     device = resolve_device(config.run.device)
     config = complete_config(config, device, "tum")  # a phone's depth is a real sensor's, as TUM's
-    folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
-    session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
+    stem = f"live_{source.name}_{config.preset}"
+    with new_run_folder(Path(config.run.output), stem, config.run.name, overwrite) as folder:
+        session = open_session(
+            config,
+            source,
+            folder,
+            progress=progress,
+            run_info=describe_run(source.name, True, config),
+            save_every_s=config.live.save_every_s,
+        )
 
-    def add_status(graph: Graph) -> None:
-        if config.live.status_port:
-            read = status_reader(session, graph)
-            graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
+        def add_status(graph: Graph) -> None:
+            if config.live.status_port:
+                read = status_reader(session, graph)
+                graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
 
-    report = execute_session(session, on_graph=add_status)
-    slam, sink = session.slam, session.sink
-    if slam.state.gaussians is None:
-        log.info("stopped before any frame was processed: nothing to save")
-        return ServeResult(session.folder, None)
-    assert session.saver is not None
-    session.saver.save_now(slam)
-    metrics = {
+        with signals_noted():
+            report = execute_session(session, on_graph=add_status)
+            if session.slam.state.gaussians is None:
+                log.info("stopped before any frame was processed: nothing to save")
+                return ServeResult(session.folder, None)
+            session.saver.save_now(session.slam)
+            metrics = _metrics(session, report, device)
+            session.folder.write_metrics(metrics)
+    return ServeResult(session.folder, metrics)
+
+
+def _metrics(session: Session, report: RuntimeReport, device: torch.device) -> dict[str, Any]:
+    config, slam, sink, source = session.config, session.slam, session.sink, session.source
+    assert slam.state.gaussians is not None
+    return {
         "source": source.name,
         "preset": config.preset,
         "frames": slam.frames_done,
@@ -109,5 +132,3 @@ def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
         "time": timing_summary(sink.results, report, sink.arrivals),
         "ate_rmse_cm": live_ate_cm(sink.results),
     }
-    session.folder.write_metrics(metrics)
-    return ServeResult(session.folder, metrics)

@@ -33,14 +33,24 @@ def frame_row(result: FrameResult) -> dict[str, Any]:
 
 
 RowWriter = Callable[[list[dict[str, Any]]], None]
+WriteFailure = Callable[[str, OSError], None]  # (what could not be written, why)
 
 
 class ResultSink:
     """Keeps every frame's result, hands its row to `write_rows` (the run folder's frames.csv)
-    and advances the progress bar."""
+    and advances the progress bar. A row that cannot be written is reported to `on_write_error`
+    and SLAM goes on (without one, the OSError ends the run)."""
 
-    def __init__(self, write_rows: RowWriter, total: int | None, initial: int = 0, progress: bool = True) -> None:
+    def __init__(
+        self,
+        write_rows: RowWriter,
+        total: int | None,
+        initial: int = 0,
+        progress: bool = True,
+        on_write_error: WriteFailure | None = None,
+    ) -> None:
         self.write_rows = write_rows
+        self.on_write_error = on_write_error
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
@@ -51,7 +61,12 @@ class ResultSink:
     def consume(self, result: FrameResult) -> None:
         self.arrivals.append(time.perf_counter())
         self.results.append(result)
-        self.write_rows([frame_row(result)])
+        try:
+            self.write_rows([frame_row(result)])
+        except OSError as exc:
+            if self.on_write_error is None:
+                raise
+            self.on_write_error(f"the row of frame {result.index} in frames.csv", exc)
         if result.lost:
             self.lost_frames += 1
             log.warning("frame %d: tracking lost: %s", result.index, result.lost)

@@ -30,10 +30,11 @@ async def dedicated_thread_stage(
     stats: StageStats,
     stop: asyncio.Event,
     in_flight: int = 2,
-) -> None:
+) -> EndOfStream:
     """Apply `fn` to every item in order in a thread of its own. At most `in_flight` items are
     handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
-    thread finishes the item in hand and takes no other."""
+    thread finishes the item in hand and takes no other. -> the end marker passed on (END, or
+    the StreamFailed of a stage before this one); a failure of `fn` itself is raised."""
     loop = asyncio.get_running_loop()
     handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
     finished: asyncio.Queue[Any] = asyncio.Queue()
@@ -53,7 +54,7 @@ async def dedicated_thread_stage(
                 return
             stats.record(time.perf_counter() - start)
             post(result)
-        post(END)
+        post(item if isinstance(item, EndOfStream) else END)
 
     async def feed() -> None:
         while True:
@@ -82,4 +83,5 @@ async def dedicated_thread_stage(
         halted.set()
         handoff.put(END)  # wakes the worker if it waits for an item
         await asyncio.to_thread(thread.join)
-    await outbox.put(END)
+    await outbox.put(result)
+    return result

@@ -33,6 +33,12 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, 
         raise UserError(f"unknown layout '{config.layout}' (choose replica or tum)")
     if config.layout == "replica" and (config.depth_noise or config.holes or config.time_jitter):
         raise UserError("depth noise, holes and timestamp jitter apply to the TUM layout only")
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{path} is a file, not a folder to write the sequence into")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create {path}: {exc.strerror}") from None
     intrinsics, frames = sequence(config, device)
     frames = _with_progress(frames, config.frames, progress)
     if config.layout == "replica":

@@ -8,13 +8,12 @@ opacity as a logit; scales as logs (an isotropic scale repeated); rotations as (
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 import torch
 
 from pipeline.errors import DataError
-from pipeline.io.outputs.atomic import atomic_write
+from pipeline.io.outputs.atomic import atomic_write_bytes
 from pipeline.render.types import Gaussians
 
 SH_C0 = 0.28209479177387814
@@ -27,6 +26,11 @@ PROPERTIES = (
 
 def write_ply(path: Path, gaussians: Gaussians) -> None:
     """Write the map atomically (binary little-endian float32)."""
+    atomic_write_bytes(path, ply_bytes(gaussians))
+
+
+def ply_bytes(gaussians: Gaussians) -> bytes:
+    """The map as the bytes of a PLY file (binary little-endian float32)."""
     n = len(gaussians)
     columns = {
         "xyz": gaussians.means,
@@ -42,12 +46,7 @@ def write_ply(path: Path, gaussians: Gaussians) -> None:
         + [f"property float {name}" for name in PROPERTIES]
         + ["end_header"]
     )
-
-    def write(f: IO[bytes]) -> None:
-        f.write((header + "\n").encode("ascii"))
-        f.write(data.tobytes())
-
-    atomic_write(path, write)
+    return (header + "\n").encode("ascii") + data.tobytes()
 
 
 def read_ply(path: Path) -> Gaussians:
@@ -62,21 +61,34 @@ def read_ply(path: Path) -> Gaussians:
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in header:
         raise DataError(f"{path}: only binary little-endian PLY is supported")
-    count, names, types = 0, [], []
+    count, names, types = None, [], []
     ply_types = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
     for line in header:
         parts = line.split()
         if parts[:2] == ["element", "vertex"]:
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise DataError(f"{path}: malformed header line '{line}'")
             count = int(parts[2])
         elif parts[:1] == ["property"] and len(parts) == 3:
             if parts[1] not in ply_types:
                 raise DataError(f"{path}: unsupported property type {parts[1]}")
             types.append(ply_types[parts[1]])
             names.append(parts[2])
+    if count is None:
+        raise DataError(f"{path}: the header has no 'element vertex' line")
     missing = [p for p in PROPERTIES if p not in names and not p.startswith("n")]
     if missing:
         raise DataError(f"{path}: not a Gaussian-splatting PLY (missing {', '.join(missing)})")
-    table = np.frombuffer(raw, dtype=np.dtype(list(zip(names, types))), count=count, offset=end + len(b"end_header\n"))
+    try:
+        layout = np.dtype(list(zip(names, types)))
+    except ValueError as exc:  # e.g. a property named twice
+        raise DataError(f"{path}: malformed header ({exc})") from None
+    body = len(raw) - end - len(b"end_header\n")
+    if body < count * layout.itemsize:
+        raise DataError(
+            f"{path} is truncated: its header announces {count} Gaussians, the file holds {body // layout.itemsize}"
+        )
+    table = np.frombuffer(raw, dtype=layout, count=count, offset=end + len(b"end_header\n"))
 
     def cols(*keys: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=1))

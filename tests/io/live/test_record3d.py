@@ -10,7 +10,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -22,7 +21,7 @@ import numpy as np
 import pytest
 from aiohttp import web
 from aiortc import RTCPeerConnection
-from live_helpers import free_port, read_status, wait_for
+from live_helpers import PhoneThread, free_port, read_status, wait_for
 
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.errors import DataError
@@ -161,22 +160,6 @@ def test_the_decoder_skips_and_counts_all_red_and_odd_frames(caplog: pytest.LogC
 def test_working_size_for_the_cpu_is_halved() -> None:
     assert halved_to(512, 384, 128) == (128, 96)
     assert halved_to(512, 384, 0) == (512, 384)
-
-
-class PhoneThread:
-    """A FakePhone (or any aiohttp app) on its own event loop in a thread, as a separate device."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
-
-    def call(self, coro_fn: Callable[[], Any]) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro_fn(), self.loop).result(timeout=30)
-
-    def close(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(timeout=10)
 
 
 async def _receive(
