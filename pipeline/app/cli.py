@@ -149,7 +149,7 @@ def _config_from(args: argparse.Namespace) -> Config:
         ("viewer.port", getattr(args, "viewer_port", None)),
         ("viewer.host", getattr(args, "viewer_host", None)),
     ):
-        if value:
+        if value is not None:
             config = with_value(config, key, value)
     validate(config)
     return config
@@ -285,10 +285,9 @@ def cmd_fake_record3d(args: argparse.Namespace) -> int:
 
     from pipeline.io.live.fake_record3d import FakePhone
 
-    dataset = _fake_phone_dataset(args)
-
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port} is not a port (0 to 65535; 0: any free one)")
+    dataset = _fake_phone_dataset(args)
 
     async def main() -> None:
         phone = FakePhone(dataset, args.fps, args.loop)

@@ -125,7 +125,7 @@ def _finish(
     session: Session, dataset: Dataset, report: RuntimeReport, signalled: threading.Event, progress: bool
 ) -> dict[str, Any]:
     """Write trajectory, map and checkpoint, evaluate (unless the run was interrupted; a signal
-    cuts it short), write metrics."""
+    cuts it short), write metrics. OutputError where a file could not be written (a full disk)."""
     session.saver.save_now(session.slam)
     metrics = _metrics(session, dataset)
     results = session.sink.results
@@ -139,7 +139,10 @@ def _finish(
         metrics["evaluation"] = "skipped: SLAM was interrupted (continue with --resume)"
     else:
         metrics["render"], metrics["evaluation"] = _render_metrics(session, dataset, signalled, progress)
+    metrics["write_error"] = session.saver.error or None  # a frames.csv line that could not be written
     session.folder.write_metrics(metrics)
+    if session.saver.error:
+        raise OutputError(f"{session.saver.error}; the other outputs are written")
     return metrics
 
 
@@ -175,20 +178,25 @@ def _metrics(session: Session, dataset: Dataset) -> dict[str, Any]:
 def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailure) -> None:
     """Write what was processed before `failure` ended the run, and mark where and why it stopped
     in metrics.json; a write that fails too is logged (the failure is what the user sees)."""
-    slam = session.slam
+    slam, saver = session.slam, session.saver
     if slam.state.gaussians is None:
         return
     try:
-        session.saver.save_now(slam)
-        metrics = _metrics(session, dataset)
-        metrics["stopped"] = {"stage": failure.stage, "frame": failure.frame, "reason": str(failure.cause)}
-        metrics["evaluation"] = "skipped: the run stopped on an error"
+        saver.save_now(slam)
+    except OutputError as exc:
+        log.error("%s", exc)
+    metrics = _metrics(session, dataset)
+    where = {"stage": failure.stage, "frame": failure.frame, "reason": str(failure.cause)}
+    metrics["stopped"] = {**where, "frames_saved": saver.saved_frames}
+    metrics["evaluation"] = "skipped: the run stopped on an error"
+    try:
         session.folder.write_metrics(metrics)
-    except (OutputError, OSError) as exc:
-        log.error("the %d frames processed could not be written: %s", slam.frames_done, exc)
+    except OutputError as exc:
+        log.error("%s", exc)
         return
     log.info(
-        "wrote the %d frames processed to %s; once the cause is fixed: gsplatam run --resume %s",
+        "saved %d of the %d frames processed in %s; once the cause is fixed: gsplatam run --resume %s",
+        saver.saved_frames,
         slam.frames_done,
         session.folder.path,
         session.folder.path,

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
 from pipeline.config import Config, to_toml
-from pipeline.errors import DataError
+from pipeline.errors import DataError, OutputError
 from pipeline.io.outputs.atomic import atomic_write_all, atomic_write_bytes, atomic_write_text, bytes_writer
 from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
 from pipeline.io.outputs.ply import ply_bytes
@@ -52,7 +54,8 @@ class RunFolder:
         return [path / name for name in RESULT_FILES if (path / name).exists()]
 
     def write_config(self, config: Config) -> None:
-        atomic_write_text(self.config, to_toml(config))
+        with _writing(self.config):
+            atomic_write_text(self.config, to_toml(config))
 
     def append_frames(self, rows: list[dict[str, Any]]) -> None:
         """One CSV line per frame, flushed at once: the one file appended to rather than replaced,
@@ -80,7 +83,8 @@ class RunFolder:
             return
         lines = self.frames_csv.read_text(errors="replace").splitlines(keepends=True)
         kept = [line for line in lines if line.endswith("\n") and _row_index(line) in range(frames_done)]
-        atomic_write_text(self.frames_csv, "".join([",".join(FRAME_COLUMNS) + "\r\n", *kept]))
+        with _writing(self.frames_csv):
+            atomic_write_text(self.frames_csv, "".join([",".join(FRAME_COLUMNS) + "\r\n", *kept]))
 
     def write_state(self, checkpoint: Checkpoint, timestamps: np.ndarray, reference: np.ndarray | None) -> None:
         """Trajectory (and reference), map and checkpoint from a SLAM checkpoint (on the host);
@@ -118,7 +122,17 @@ class RunFolder:
         return metrics if isinstance(metrics, dict) else None
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
-        atomic_write_text(self.metrics, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+        with _writing(self.metrics):
+            atomic_write_text(self.metrics, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+
+
+@contextlib.contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """An OSError writing `path` as the OutputError a user sees (one line, exit code 2)."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def _row_index(line: str) -> int | None:
