@@ -66,6 +66,11 @@ class PeriodicSave:
         if not self._save(slam.checkpoint(), self.stamps):
             raise OutputError(f"{self.error}; {self._kept()}")
 
+    def wait(self) -> None:
+        """Until the save in progress, if any, has ended."""
+        if self._pending is not None:
+            self._pending.result()
+
     def close(self) -> None:
         self._writer.shutdown(wait=True)
 
