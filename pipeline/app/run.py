@@ -131,7 +131,6 @@ def _finish(
     results = session.sink.results
     earlier = session.folder.read_metrics() if not results else None  # a resume that only evaluates
     metrics.update(
-        interrupted=report.interrupted or signalled.is_set(),
         runtime=earlier.get("runtime") if earlier else report.summary(),
         time=earlier.get("time") if earlier else timing_summary(results, report, session.sink.arrivals),
     )
@@ -139,6 +138,7 @@ def _finish(
         metrics["evaluation"] = "skipped: SLAM was interrupted (continue with --resume)"
     else:
         metrics["render"], metrics["evaluation"] = _render_metrics(session, dataset, signalled, progress)
+    metrics["interrupted"] = report.interrupted or signalled.is_set()
     metrics["write_error"] = session.saver.error or None  # a frames.csv line that could not be written
     session.folder.write_metrics(metrics)
     if session.saver.error:
