@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline.errors import UserError
+from pipeline.io.folders import make_folder
 from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.run_folder import RUN_FILES, RunFolder
 from pipeline.io.outputs.run_lock import RunLock
@@ -28,12 +29,7 @@ LATEST = "latest"
 
 def check_output(output: Path) -> None:
     """Make sure run folders can be made under `output` (created if missing), or say why not."""
-    if output.exists() and not output.is_dir():
-        raise UserError(f"--output {output} is a file, not a folder")
-    try:
-        output.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create the output folder {output}: {exc.strerror}") from None
+    make_folder(output, "the output folder")
     if not os.access(output, os.W_OK | os.X_OK):
         raise UserError(f"cannot write into the output folder {output}: permission denied")
 
@@ -63,14 +59,7 @@ def existing_run_folder(folder: Path) -> Iterator[Path]:
 
 
 def _named(output: Path, name: str) -> Path:
-    folder = output / name
-    if folder.exists() and not folder.is_dir():
-        raise UserError(f"{folder} is a file, not a run folder: choose another --name")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create the run folder {folder}: {exc.strerror}") from None
-    return folder
+    return make_folder(output / name, "the run folder")
 
 
 def _timestamped(output: Path, stem: str) -> Path:

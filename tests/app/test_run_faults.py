@@ -11,16 +11,18 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
-from conftest import ROOT
+from conftest import ROOT, SMALL_SYNTH
+from live_helpers import wait_for
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
+from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.io.outputs.checkpoint import write_checkpoint
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.trajectory import read_tum_trajectory
@@ -145,19 +147,20 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
 
 @pytest.mark.slow
 def test_a_killed_run_keeps_its_periodic_save_and_resumes_from_it(tmp_path: Path) -> None:
-    sequence = tmp_path / "seq"
-    assert main(["synth", str(sequence), "--frames", "8", "--width", "64", "--height", "48", "--quiet"]) == 0
-    out = tmp_path / "out"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    sequence, out, log_path = tmp_path / "seq", tmp_path / "out", tmp_path / "run.log"
+    write_synthetic(sequence, replace(SMALL_SYNTH, frames=8), progress=False)  # enough frames to be killed midway
     saves = ["--set", "run.save_every_s=0.001", "--set", "run.eval_every=8"]
     argv = ["run", str(sequence), "--output", str(out), "--name", "k", *saves, *QUICK]
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline", *argv], env=env, cwd=ROOT, stderr=subprocess.PIPE)
+    with open(log_path, "w") as log_file:
+        command = [sys.executable, "-m", "pipeline", *argv]
+        proc = subprocess.Popen(command, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, stderr=log_file)
     folder = out / "k"
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and proc.poll() is None:
-        if (folder / "checkpoint.safetensors").exists() and len((folder / "frames.csv").read_text().splitlines()) > 2:
-            break
-        time.sleep(0.1)
+
+    def saved_and_going_on() -> bool:
+        rows = len((folder / "frames.csv").read_text().splitlines()) if (folder / "frames.csv").exists() else 0
+        return proc.poll() is not None or ((folder / "checkpoint.safetensors").exists() and rows > 2)
+
+    wait_for(saved_and_going_on, 240, "a periodic save", log_path)
     proc.kill()  # SIGKILL: nothing runs after it
     proc.wait()
     saved = RunFolder(folder).read_checkpoint()[0].frames_done

@@ -121,4 +121,4 @@ def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
     output = tmp_path / "afile"
     output.write_text("x")
     assert main(["run", "--output", str(output), "--quiet"]) == 2
-    assert "is a file, not a folder" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"the output folder {output} is a file, not a folder" in capsys.readouterr().err.strip().splitlines()[-1]

@@ -380,3 +380,5 @@ def test_the_daemon_stops_cleanly_while_waiting_for_an_absent_phone(tmp_path: Pa
     output, _ = daemon.communicate(timeout=30)
     assert daemon.returncode == 0, output
     assert "cannot connect" in output and "nothing to save" in output
+    (folder,) = tmp_path.glob("live_record3d_tiny-2*")  # a fresh, timestamped run folder; latest points at it
+    assert (tmp_path / "latest").resolve() == folder.resolve()
