@@ -10,7 +10,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -374,10 +373,13 @@ def test_the_daemon_stops_cleanly_while_waiting_for_an_absent_phone(tmp_path: Pa
         sys.executable, "-m", "pipeline", "serve", "--record3d", f"http://127.0.0.1:{free_port()}",
         "--device", "cpu", "--output", str(tmp_path), "--quiet", "--set", "live.status_port=0",
     ]  # fmt: skip
-    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    time.sleep(4)
-    daemon.send_signal(signal.SIGINT)
-    output, _ = daemon.communicate(timeout=30)
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
+    wait_for(lambda: "cannot connect" in log_path.read_text(), 120, "a connection attempt", log_path)
+    daemon.send_signal(signal.SIGINT)  # once it runs (a slow start would otherwise end as a plain Ctrl-C)
+    daemon.wait(timeout=30)
+    output = log_path.read_text()
     assert daemon.returncode == 0, output
     assert "cannot connect" in output and "nothing to save" in output
     (folder,) = tmp_path.glob("live_record3d_tiny-2*")  # a fresh, timestamped run folder; latest points at it
