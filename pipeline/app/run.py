@@ -27,6 +27,7 @@ from pipeline.io.datasets.synthetic_writer import cached_synthetic
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.metrics import absolute_trajectory_error, view_quality
 from pipeline.runtime import RuntimeReport
+from pipeline.slam.state import Checkpoint
 from pipeline.stages.upload import make_uploader
 
 log = logging.getLogger("gsplatam")
@@ -64,33 +65,53 @@ def run_slam(
         claimed = new_run_folder(Path(config.run.output), _default_name(dataset, config), config.run.name, overwrite)
     with claimed as folder:
         checkpoint = read_resumable(folder, run_info, len(dataset)) if resume is not None else None
-        done = checkpoint.frames_done if checkpoint else 0
-        RunFolder(folder).keep_frames(done)
-        session = open_session(
-            config,
-            DatasetSource(dataset, done),
-            folder,
-            progress=progress,
-            run_info=run_info,
-            save_every_s=config.run.save_every_s,
-            stop_on_failure=True,
-            resume=checkpoint,
-            earlier=[(r.timestamp, r.c2w_gt) for r in dataset.refs[:done]],
-            total=len(dataset),
-        )
-        log.info("dataset: %s (%s, %d frames)", dataset.name, dataset.format, len(dataset))
+        session = _open(config, dataset, folder, run_info, checkpoint, progress)
         with signals_noted() as signalled:
-            try:
-                report = execute_session(session, profile_trace)
-            except StageFailure as failure:
-                _write_after_failure(session, dataset, failure)
-                raise
+            report = _execute(session, dataset, profile_trace)
             if session.slam.state.gaussians is None:
                 if report.interrupted:
                     log.info("interrupted before the first frame was processed: nothing to write")
                     return RunResult(session.folder, None)
                 raise UserError("no frame was processed")
             return RunResult(session.folder, _finish(session, dataset, report, signalled, progress))
+
+
+def _open(
+    config: Config,
+    dataset: Dataset,
+    folder: Path,
+    run_info: dict[str, Any],
+    checkpoint: Checkpoint | None,
+    progress: bool,
+) -> Session:
+    """The session over `dataset` into `folder`, from `checkpoint` when resuming (frames.csv
+    kept to its frames); a write failure stops the run."""
+    done = checkpoint.frames_done if checkpoint else 0
+    RunFolder(folder).keep_frames(done)
+    session = open_session(
+        config,
+        DatasetSource(dataset, done),
+        folder,
+        progress=progress,
+        run_info=run_info,
+        save_every_s=config.run.save_every_s,
+        stop_on_failure=True,
+        resume=checkpoint,
+        earlier=[(r.timestamp, r.c2w_gt) for r in dataset.refs[:done]],
+        total=len(dataset),
+    )
+    log.info("dataset: %s (%s, %d frames)", dataset.name, dataset.format, len(dataset))
+    return session
+
+
+def _execute(session: Session, dataset: Dataset, profile_trace: bool) -> RuntimeReport:
+    """SLAM to the end of the dataset or a stop; after a failure, what was processed is written
+    before the failure is raised again."""
+    try:
+        return execute_session(session, profile_trace)
+    except StageFailure as failure:
+        _write_after_failure(session, dataset, failure)
+        raise
 
 
 def _default_name(dataset: Dataset, config: Config) -> str:
@@ -179,7 +200,7 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
     """Write what was processed before `failure` ended the run, and mark where and why it stopped
     in metrics.json; a write that fails too is logged (the failure is what the user sees)."""
     slam, saver = session.slam, session.saver
-    if slam.state.gaussians is None:
+    if slam.frames_done == 0:
         return
     try:
         saver.save_now(slam)

@@ -117,6 +117,7 @@ def serve(config: Config, source: Source, progress: bool = True, overwrite: bool
 
 
 def _metrics(session: Session, report: RuntimeReport, device: torch.device) -> dict[str, Any]:
+    """metrics.json of a live run: frames, map size, the source's counters, timing, live ATE."""
     config, slam, sink, source = session.config, session.slam, session.sink, session.source
     assert slam.state.gaussians is not None
     return {
