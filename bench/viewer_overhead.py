@@ -68,7 +68,7 @@ def run_once(config: Any, name: str, port: int | None, map_every_s: float = 0.0)
         config = replace(config, viewer=replace(config.viewer, enabled=True, port=port, map_every_s=map_every_s))
         client = ViserClient(port)
         client.start()
-    result = run_slam(replace(config, run=replace(config.run, name=name)), progress=False)
+    result = run_slam(replace(config, run=replace(config.run, name=name)), progress=False, overwrite=True)
     assert result.metrics is not None
     t = result.metrics["time"]
     row = {

@@ -17,3 +17,7 @@ class StageFailure(Exception):
         where = f" on frame {frame}" if frame is not None else ""
         super().__init__(f"stage '{stage}' failed{where}: {cause}")
         self.stage, self.frame, self.cause = stage, frame, cause
+
+
+class OutputError(UserError):
+    """A run folder that cannot be written (a full disk, no permission)."""

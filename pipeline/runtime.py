@@ -23,7 +23,7 @@ from torch.profiler import record_function
 from pipeline.errors import StageFailure
 from pipeline.frame import Frame
 from pipeline.source import Source
-from pipeline.stages.queues import END, Policy, StageQueue
+from pipeline.stages.queues import END, EndOfStream, Policy, StageQueue, StreamFailed
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import SlamStage
 from pipeline.stages.stage import StageStats, frame_index, transform_stage
@@ -110,33 +110,38 @@ def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, st
     return report
 
 
-async def _pump(source: AsyncIterable[Any], outbox: StageQueue[Any]) -> None:
+async def _pump(source: AsyncIterable[Any], outbox: StageQueue[Any]) -> EndOfStream:
     try:
         async for item in source:
             await outbox.put(item)
     except Exception as exc:
-        raise StageFailure("source", None, exc) from exc
+        return StreamFailed(StageFailure("source", None, exc))
+    return END
 
 
 async def _feed(source: AsyncIterable[Any], outbox: StageQueue[Any], stop: asyncio.Event) -> None:
-    """Move the source's items into `outbox` until it ends or `stop` is set, then END. A live
-    source may wait for input forever: `stop` cancels that wait."""
+    """Move the source's items into `outbox` until it ends or `stop` is set, then the end
+    marker. A live source may wait for input forever: `stop` cancels that wait."""
     pump = asyncio.create_task(_pump(source, outbox))
     halt = asyncio.create_task(stop.wait())
+    end: EndOfStream = END
     try:
         await asyncio.wait({pump, halt}, return_when=asyncio.FIRST_COMPLETED)
+        if pump.done():
+            end = pump.result()
     finally:
         halt.cancel()
         pump.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await pump
-    await outbox.put(END)
+    await outbox.put(end)
 
 
 async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     """Run the pipelined graph to the end of the source, or until `stop` is set (then the
-    frame in SLAM finishes and the rest is left). A failing stage stops everything and its
-    StageFailure is raised."""
+    frame in SLAM finishes and the rest is left). A stage failing before SLAM (a frame that
+    cannot be read) ends the stream at that frame: SLAM and the sink finish the frames before
+    it, then its StageFailure is raised. A failing SLAM step or sink stops everything at once."""
     q = graph.queue_size
     live = graph.source.live  # every queue up to SLAM then holds only the newest item (drops counted)
     q_in = 1 if live else q
@@ -155,7 +160,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     start = time.perf_counter()
     try:
         async with asyncio.TaskGroup() as group:
-            upstream = [
+            upstream: list[asyncio.Task[Any]] = [
                 group.create_task(_feed(graph.source, refs, stop)),
                 group.create_task(transform_stage("decode", graph.source.decode, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
@@ -180,7 +185,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             ]
             group.create_task(graph.sink.drain(results))
             upstream += slam[:-1] + [group.create_task(service(stop)) for service in graph.services]
-            await slam[-1]
+            end = await slam[-1]
             for task in upstream:
                 task.cancel()
     except* StageFailure as failures:
@@ -188,6 +193,8 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     finally:
         for pool in pools:
             pool.shutdown(wait=True, cancel_futures=True)
+    if isinstance(end, StreamFailed):
+        raise end.failure
     wall = time.perf_counter() - start
     report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
     report.queues = {name: {"max_depth": q.max_depth, "dropped": q.dropped} for name, q in graph.queues.items()}
@@ -225,7 +232,8 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
 
 
 def execute(graph: Graph, loader: str) -> RuntimeReport:
-    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly."""
+    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly.
+    The handlers in place before are back afterwards."""
     if loader == "sync":
         stop = threading.Event()
         previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -238,13 +246,15 @@ def execute(graph: Graph, loader: str) -> RuntimeReport:
     async def main() -> RuntimeReport:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        for sig in previous:
             loop.add_signal_handler(sig, stop.set)
         try:
             return await run_graph(graph, stop)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            for sig, handler in previous.items():
+                loop.remove_signal_handler(sig)  # which leaves the default handler, not the previous one
+                signal.signal(sig, handler)
 
     if HAVE_UVLOOP:
         return uvloop.run(main())

@@ -22,6 +22,7 @@ class SourceCounters:
     received: int = 0  # items taken from the input
     skipped: int = 0  # usable messages without a usable frame (no depth, odd size, all invalid)
     rejected: int = 0  # malformed, duplicate or out-of-order messages
+    ignored: int = 0  # frames of another publisher than the one followed (NeRFCapture)
     connected: bool = False  # a live peer is streaming now (always False for files)
     connections: int = 0  # live connections made so far
     last_error: str = ""

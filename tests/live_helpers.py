@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import socket
+import threading
 import time
 import urllib.request
 from collections.abc import Callable
@@ -32,3 +34,19 @@ def wait_for(predicate: Callable[[], bool], seconds: float, what: str, log_path:
             return
         time.sleep(0.5)
     raise AssertionError(f"timed out waiting for {what}; daemon log:\n{log_path.read_text()[-3000:]}")
+
+
+class PhoneThread:
+    """A FakePhone (or any aiohttp app) on its own event loop in a thread, as a separate device."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+
+    def call(self, coro_fn: Callable[[], Any]) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro_fn(), self.loop).result(timeout=30)
+
+    def close(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(timeout=10)

@@ -20,6 +20,7 @@ from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config, with_value
 from pipeline.devices import describe, resolve_device
 from pipeline.errors import UserError
+from pipeline.io.outputs.atomic import atomic_write_text
 
 log = logging.getLogger("gsplatam")
 
@@ -133,7 +134,8 @@ def run_matrix(
         name = f"{Path(cell.sequence).name}_{cell.preset}_{cell.variant}" + (f"_{cell.repeat}" if cell.repeat else "")
         log.info("bench: cell %d of %d: %s", number, len(cells), name)
         config = cell_config(cell, base_overrides, runs, name)
-        metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+        # a cell's run folder is scratch: a later benchmark of the same cell replaces it
+        metrics = run_slam(config, profile_trace=profile, progress=progress, overwrite=True).metrics
         if metrics is None:
             raise UserError("benchmark interrupted before its first frame")
         rows.append(row_of(cell, metrics))
@@ -195,8 +197,8 @@ def markdown(report: dict[str, Any]) -> str:
 def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
     json_path, md_path = out / f"{stem}.json", out / f"{stem}.md"
-    json_path.write_text(json.dumps(report, indent=2) + "\n")
-    md_path.write_text(markdown(report))
+    atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
+    atomic_write_text(md_path, markdown(report))
     return json_path, md_path
 
 

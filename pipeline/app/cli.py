@@ -85,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
         "record3d:URL or nerfcapture:",
     )  # fmt: skip
     _add_config_options(run)
-    run.add_argument("--name", help="run folder name under --output")
+    run.add_argument("--name", help="run folder name under --output (default: <dataset>_<preset>-<date>-<time>)")
+    run.add_argument("--overwrite", action="store_true", help="replace the earlier run in the --name folder")
     run.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its checkpoint")
     run.add_argument("--loader", choices=["pipelined", "sync"], help="asyncio pipeline (default) or a plain loop")
     run.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
@@ -126,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="NeRFCapture app over DDS (domain 0, topic Frames); its pose per --set live.device_pose=...",
     )  # fmt: skip
     _add_config_options(serve)
-    serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
+    serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>-<date>-<time>)")
+    serve.add_argument("--overwrite", action="store_true", help="replace the earlier run in the --name folder")
     _add_viewer_options(serve)
 
     fake = command("fake-record3d", help="a fake Record3D phone streaming a dataset (for tests and demos)")
@@ -161,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _config_from(args: argparse.Namespace) -> Config:
-    from pipeline.config import load_config, with_value
+    from pipeline.config import load_config, validate, with_value
     from pipeline.devices import default_preset, resolve_device
 
     config_file = args.config
@@ -172,6 +174,8 @@ def _config_from(args: argparse.Namespace) -> Config:
     live = args.command == "serve" or str(getattr(args, "dataset", "") or "").startswith(LIVE_SCHEMES)
     preset = args.preset or default_preset(resolve_device(args.device or "auto"), live)
     config = load_config(preset, config_file, args.overrides)
+    if args.preset and config.preset != args.preset:
+        log.warning("--preset %s is overridden by %s, which names preset '%s'", args.preset, config_file, config.preset)
     if getattr(args, "dataset", None):
         config = with_value(config, "dataset.path", args.dataset)
     for key, value in (
@@ -184,8 +188,9 @@ def _config_from(args: argparse.Namespace) -> Config:
         ("viewer.port", getattr(args, "viewer_port", None)),
         ("viewer.host", getattr(args, "viewer_host", None)),
     ):
-        if value:
+        if value is not None:
             config = with_value(config, key, value)
+    validate(config)
     return config
 
 
@@ -197,12 +202,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.dataset and args.dataset.startswith(LIVE_SCHEMES):
         if args.resume or args.profile or config.run.loader == "sync":
             raise UserError("a live input takes none of --resume, --profile, --loader sync")
-        return _serve_live(args.dataset, config, progress=not args.quiet)
+        return _serve_live(args.dataset, config, not args.quiet, args.overwrite)
     if not config.dataset.path:
         log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
-    result = run_slam(
-        config, resume=Path(args.resume) if args.resume else None, profile_trace=args.profile, progress=not args.quiet
-    )
+    if args.resume and args.overwrite:
+        raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
+    resume = Path(args.resume) if args.resume else None
+    result = run_slam(config, resume, profile_trace=args.profile, progress=not args.quiet, overwrite=args.overwrite)
     if result.metrics is None:
         return 0
     print(format_table(result.metrics))
@@ -285,13 +291,13 @@ def live_source(spec: str, config: Config) -> Source:
     return Record3DSource(url, config.live, size, live_max_width(resolve_device(config.run.device)))
 
 
-def _serve_live(spec: str, config: Config, progress: bool) -> int:
+def _serve_live(spec: str, config: Config, progress: bool, overwrite: bool) -> int:
     from pipeline.app.report import files_and_next_steps
     from pipeline.app.serve import serve
 
     source = live_source(spec, config)
     log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
-    result = serve(config, source, progress=progress)
+    result = serve(config, source, progress, overwrite)
     if result.metrics is not None:
         print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians")
         print(files_and_next_steps(result.folder.path))
@@ -300,7 +306,7 @@ def _serve_live(spec: str, config: Config, progress: bool) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     spec = "nerfcapture:" if args.nerfcapture else f"record3d:{args.record3d}"
-    return _serve_live(spec, _config_from(args), progress=not args.quiet)
+    return _serve_live(spec, _config_from(args), not args.quiet, args.overwrite)
 
 
 # The default scene of the fake phone: 256x192 is the iPhone LiDAR's depth resolution; 10 s at 30 fps.
@@ -325,11 +331,17 @@ def cmd_fake_record3d(args: argparse.Namespace) -> int:
 
     from pipeline.io.live.fake_record3d import FakePhone
 
+    if not 0 <= args.port <= 65535:
+        raise UserError(f"--port {args.port} is not a port (0 to 65535; 0: any free one)")
     dataset = _fake_phone_dataset(args)
 
     async def main() -> None:
         phone = FakePhone(dataset, args.fps, args.loop)
-        port = await phone.start(args.host, args.port)
+        try:
+            port = await phone.start(args.host, args.port)
+        except OSError as exc:
+            await phone.stop()
+            raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
         log.info(
             "fake Record3D phone: http://%s:%d (%s, %d frames at %g fps)",
             args.host,
@@ -365,6 +377,8 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from pipeline.app.view import view_saved_map
 
+    if args.viewer_port is not None and not 1 <= args.viewer_port <= 65535:
+        raise UserError(f"--viewer-port {args.viewer_port} is not a port (1 to 65535)")
     view_saved_map(Path(args.path), args.open3d, args.viewer_host or "127.0.0.1", args.viewer_port or 8080)
     return 0
 

@@ -21,7 +21,9 @@ import numpy as np
 import torch
 
 from pipeline.app.report import run_summary, timing_summary, versions
-from pipeline.app.session import Session, complete_config, execute_session, open_session
+from pipeline.app.run_folders import new_run_folder
+from pipeline.app.session import Session, complete_config, describe_run, execute_session, open_session
+from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
 from pipeline.io.live.recording import RecordingSource
@@ -83,6 +85,8 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
             "ate_rmse_cm": ate_so_far_cm(results),
             "gpu_memory_gb": _gpu_memory_gb(session.device),
+            "save_error": session.saver.error or None,
+            "saved_frames": session.saver.saved_frames,
         }
 
     return read
@@ -122,45 +126,63 @@ async def status_on_bar(sink: ResultSink, read: Callable[[], dict[str, Any]], st
             await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
 
 
-def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
-    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the end."""
+def serve(config: Config, source: Source, progress: bool = True, overwrite: bool = False) -> ServeResult:
+    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the
+    end, into a new run folder (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save
+    that fails (a full disk) is reported once in the log and the status and SLAM goes on; a
+    final save that fails raises OutputError (the last complete save stays)."""
     device = resolve_device(config.run.device)
     config = with_live_bounds(complete_config(config, device, "tum"))  # a phone's depth is a real sensor's, as TUM's
-    folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
-    recording = RecordingSource(source, folder / "recording") if config.live.record else None
-    source = recording or source
-    session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
+    stem = f"live_{source.name}_{config.preset}"
+    with new_run_folder(Path(config.run.output), stem, config.run.name, overwrite) as folder:
+        recording = RecordingSource(source, folder / "recording") if config.live.record else None
+        session = open_session(
+            config,
+            recording or source,
+            folder,
+            progress=progress,
+            run_info=describe_run(source.name, True, config),
+            save_every_s=config.live.save_every_s,
+        )
 
-    def add_status(graph: Graph) -> None:
-        read = status_reader(session, graph)
-        graph.services.append(partial(status_on_bar, session.sink, read))
-        if config.live.status_port:
-            graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
+        def add_status(graph: Graph) -> None:
+            read = status_reader(session, graph)
+            graph.services.append(partial(status_on_bar, session.sink, read))
+            if config.live.status_port:
+                graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
 
-    try:
-        report = execute_session(session, on_graph=add_status)
-        if recording is not None:
-            recording.close()  # complete before the final save, and before the viewer lingers
-        result = _save(session, report)
-        if result.metrics is not None:
-            m = result.metrics
-            session.linger(run_summary(m["frames"], m["gaussians"], m["ate_rmse_cm"], None) + f"\n\nin {folder}")
-        return result
-    finally:
-        if recording is not None:
-            recording.close()
-        session.close()
+        try:
+            with signals_noted():
+                report = execute_session(session, on_graph=add_status)
+                if recording is not None:
+                    recording.close()  # complete before the final save, and before the viewer lingers
+                result = _save(session, report)
+            if result.metrics is not None:
+                m = result.metrics
+                session.linger(run_summary(m["frames"], m["gaussians"], m["ate_rmse_cm"], None) + f"\n\nin {folder}")
+            return result
+        finally:
+            if recording is not None:
+                recording.close()
+            session.close()
 
 
 def _save(session: Session, report: RuntimeReport) -> ServeResult:
     """The final save (map, trajectory, checkpoint) and metrics.json."""
-    config, slam, sink, source = session.config, session.slam, session.sink, session.source
-    if slam.gaussians is None:
+    if session.slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
-    assert session.saver is not None
-    session.saver.save_now(slam)
-    metrics = {
+    session.saver.save_now(session.slam)
+    metrics = _metrics(session, report)
+    session.folder.write_metrics(metrics)
+    return ServeResult(session.folder, metrics)
+
+
+def _metrics(session: Session, report: RuntimeReport) -> dict[str, Any]:
+    """metrics.json of a live run: frames, map size, the source's counters, timing, frame ages, live ATE."""
+    config, slam, sink, source = session.config, session.slam, session.sink, session.source
+    assert slam.gaussians is not None
+    return {
         "source": source.name,
         "preset": config.preset,
         "frames": slam.frames_done,
@@ -175,5 +197,3 @@ def _save(session: Session, report: RuntimeReport) -> ServeResult:
         "frame_age_ms": frame_age_ms(sink.results),
         "ate_rmse_cm": ate_so_far_cm(sink.results),
     }
-    session.folder.write_metrics(metrics)
-    return ServeResult(session.folder, metrics)

@@ -4,9 +4,10 @@ profiler when asked)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -20,7 +21,7 @@ from pipeline.config import Config, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
 from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
-from pipeline.io.outputs.periodic_save import PeriodicSave
+from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 from pipeline.render import make_renderer, resolve_backend
@@ -51,7 +52,7 @@ class Session:
     source: Source
     sink: ResultSink
     intrinsics: IntrinsicsRecorder
-    saver: PeriodicSave | None = None
+    saver: PeriodicSave
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
 
@@ -72,21 +73,32 @@ class Session:
         return [o for o in (self.intrinsics, self.saver, self.viewer) if o is not None]
 
 
+def describe_run(source: str, live: bool, config: Config, **details: Any) -> dict[str, Any]:
+    """What a checkpoint records of its run, so that a resume can tell it continues the same one:
+    the source's name, whether it is live, the kind of map, and `details` (JSON-able: sizes, slicing)."""
+    gaussians = {"gaussians": config.gaussians.kind, "isotropic": config.gaussians.isotropic}
+    return {"source": source, "live": live, **gaussians, **details}
+
+
 def open_session(
     config: Config,
     source: Source,
     folder: Path,
     *,
     progress: bool,
+    run_info: dict[str, Any],
+    save_every_s: float,
+    stop_on_failure: bool = False,
     resume: Checkpoint | None = None,
+    earlier: Sequence[FrameStamp] = (),
     total: int | None = None,
-    save_every_s: float | None = None,
 ) -> Session:
-    """Write the config into `folder` and build SLAM (continuing from `resume`), the result sink
-    (a bar over `total` frames), the periodic save (every `save_every_s`; None: none) and the
-    viewer (when the config enables it). `config` must be complete (`complete_config`)."""
+    """Write the config into `folder` and build SLAM (continuing from `resume`, whose frames'
+    stamps are `earlier`), the result sink (a bar over `total` frames), the periodic save (every
+    `save_every_s`; on a write failure it stops the run if `stop_on_failure`, else reports it)
+    and the viewer (when the config enables it). `config` must be complete (`complete_config`);
+    `run_info` (`describe_run`) goes into every checkpoint."""
     device = resolve_device(config.run.device)
-    run_info = {"source": source.name, "live": source.live, "gaussians": config.gaussians.kind}
     run_folder = RunFolder(folder, run_info)
     run_folder.write_config(config)
     log.info("device: %s; run folder: %s", describe(device, config), run_folder.path)
@@ -98,8 +110,8 @@ def open_session(
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
-    sink = ResultSink(run_folder.append_frames, total=total, initial=initial, progress=progress)
-    saver = PeriodicSave(run_folder, save_every_s) if save_every_s is not None else None
+    saver = PeriodicSave(run_folder, save_every_s, earlier, stop_on_failure)
+    sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
     intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
     return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
@@ -141,8 +153,8 @@ def execute_session(
         return _profiled(graph, session)
     finally:
         session.sink.close()
-        if session.saver is not None:
-            session.saver.close()
+        session.saver.close()
+        session.folder.close()
         if session.viewer is not None:
             session.viewer.finish()  # the final map on screen; it stays up until Session.close
 
@@ -154,9 +166,14 @@ def _profiled(graph: Graph, session: Session) -> RuntimeReport:
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities, experimental_config=all_threads_config()) as prof:
         report = execute(graph, session.config.run.loader)
-    partial_trace = folder / ".trace.json.tmp"
-    prof.export_chrome_trace(str(partial_trace))
-    os.replace(partial_trace, folder / "trace.json")
+    partial_trace = folder / ".trace.json.tmp"  # the profiler writes the file itself: renamed when complete
+    try:
+        prof.export_chrome_trace(str(partial_trace))
+        os.replace(partial_trace, folder / "trace.json")
+    except BaseException:
+        with contextlib.suppress(OSError):
+            partial_trace.unlink()
+        raise
     summary, table = summarise(prof, cuda, report.wall_s)
     report.profile = summary
     atomic_write_text(folder / "profile.txt", _profile_text(summary, table, report.wall_s, cuda))

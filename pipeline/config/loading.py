@@ -5,6 +5,7 @@ A config is built once, validated, written into the run folder and never mutated
 
 from __future__ import annotations
 
+import math
 import tomllib
 import typing
 from dataclasses import fields, is_dataclass, replace
@@ -67,6 +68,8 @@ def _coerce(key: str, raw: Any, hint: Any) -> Any:
             raise UserError(f"bad value for '{key}': {raw!r} (expected {hint.__name__})") from None
         if hint is int and isinstance(raw, float) and raw != value:
             raise UserError(f"bad value for '{key}': {raw!r} (expected an integer)")
+        if not math.isfinite(value):
+            raise UserError(f"bad value for '{key}': {raw!r} (expected a finite number)")
         return value
     if hint is str:
         return str(raw)
@@ -150,8 +153,32 @@ def with_dataset_defaults(config: Config, dataset_format: str) -> Config:
     return config
 
 
+def _port(port: int, off: bool = False) -> bool:
+    return (off and port == 0) or 1 <= port <= 65535
+
+
+def _negative_learning_rate(config: Config) -> str | None:
+    """The key of the first negative learning rate, if any (NaN is refused when read)."""
+    for name, section in (("tracking", config.tracking), ("mapping", config.mapping)):
+        for item in fields(section):
+            if item.name.startswith("lr_") and getattr(section, item.name) < 0:
+                return f"{name}.{item.name}"
+    return None
+
+
 def validate(config: Config) -> None:
+    negative_rate = _negative_learning_rate(config)
+    dataset, live, synthetic = config.dataset, config.live, config.synthetic
     checks = [
+        (negative_rate is None, f"{negative_rate} must be >= 0 (a learning rate)"),
+        (config.loss.color_weight >= 0 and config.loss.depth_weight >= 0, "loss weights must be >= 0"),
+        (all(v > 0 for v in dataset.intrinsics), "dataset.intrinsics fx,fy,cx,cy must be positive"),
+        (dataset.width >= 0 and dataset.height >= 0, "dataset.width and dataset.height must be >= 0 (0: native)"),
+        (live.width >= 0 and live.height >= 0, "live.width and live.height must be >= 0 (0: the first frame's)"),
+        (min(synthetic.frames, synthetic.width, synthetic.height) >= 0, "synthetic sizes must be >= 0 (0: by device)"),
+        (_port(live.status_port, off=True), "live.status_port must be a port, 1 to 65535 (0: no status endpoint)"),
+        (_port(config.viewer.port), "viewer.port must be a port, 1 to 65535"),
+        (config.run.save_every_s > 0, "run.save_every_s must be > 0"),
         (config.tracking.iters >= 0, "tracking.iters must be >= 0"),
         (config.tracking.refine_iters >= 0, "tracking.refine_iters must be >= 0"),
         (

@@ -167,6 +167,7 @@ class RunConfig:
     compile: Switch = "auto"  # torch.compile the per-iteration loss and pose functions (auto: on CUDA)
     queue_size: int = 4  # frames each pipeline queue holds
     seed: int = 0  # seeds mapping's keyframe picks and pixel sampling
+    save_every_s: float = 60.0  # map, trajectory and checkpoint written this often while running (and at the end)
 
 
 PoseUse = Literal["initial_guess", "groundtruth", "ignore"]

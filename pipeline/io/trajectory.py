@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +51,13 @@ def pose_from_tum_row(row: np.ndarray) -> np.ndarray:
 
 
 def read_numeric_table(path: Path, columns: int) -> np.ndarray:
-    """Rows of `columns` numbers; '#' comments and blank lines skipped."""
-    rows = []
+    """Rows of `columns` finite numbers; '#' comments and blank lines skipped."""
+    return read_numeric_lines(path, columns)[0]
+
+
+def read_numeric_lines(path: Path, columns: int) -> tuple[np.ndarray, list[int]]:
+    """-> (rows of `columns` finite numbers [N, columns], the line number of each row)."""
+    rows, numbers = [], []
     try:
         text = path.read_text()
     except FileNotFoundError:
@@ -66,24 +72,45 @@ def read_numeric_table(path: Path, columns: int) -> np.ndarray:
         if len(parts) < columns:
             raise DataError(f"{path}:{number}: expected {columns} numbers, found {len(parts)}")
         try:
-            rows.append([float(p) for p in parts[:columns]])
+            row = [float(p) for p in parts[:columns]]
         except ValueError:
             raise DataError(f"{path}:{number}: not a number in '{line}'") from None
-    return np.asarray(rows, dtype=np.float64).reshape(-1, columns)
+        if not all(math.isfinite(v) for v in row):
+            raise DataError(f"{path}:{number}: NaN or infinite value in '{line}'")
+        rows.append(row)
+        numbers.append(number)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, columns), numbers
+
+
+def read_tum_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM trajectory file's rows -> (timestamps [N] seconds, rows [N, 7] tx ty tz qx qy qz qw),
+    in timestamp order. Raises DataError naming the line of a quaternion that is not a rotation."""
+    table, numbers = read_numeric_lines(path, 8)
+    norms = np.linalg.norm(table[:, 4:8], axis=1)
+    for number, norm in zip(numbers, norms):
+        if norm < 1e-6:
+            raise DataError(f"{path}:{number}: the quaternion qx qy qz qw is zero, not a rotation")
+    order = np.argsort(table[:, 0], kind="stable")
+    return table[order, 0], table[order, 1:]
 
 
 def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """-> (timestamps [N] seconds, camera-to-world poses [N, 4, 4])."""
-    table = read_numeric_table(path, 8)
-    poses = np.stack([pose_from_tum_row(row[1:]) for row in table]) if len(table) else np.zeros((0, 4, 4))
-    return table[:, 0], poses
+    timestamps, rows = read_tum_poses(path)
+    poses = np.stack([pose_from_tum_row(row) for row in rows]) if len(rows) else np.zeros((0, 4, 4))
+    return timestamps, poses
 
 
 def write_tum_trajectory(path: Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
     """Write camera-to-world poses [N, 4, 4] with their timestamps [N] in the TUM format."""
+    atomic_write_text(path, tum_trajectory_text(timestamps, c2w))
+
+
+def tum_trajectory_text(timestamps: np.ndarray, c2w: np.ndarray) -> str:
+    """Camera-to-world poses [N, 4, 4] with their timestamps [N] seconds as a TUM trajectory file."""
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for t, pose in zip(timestamps, c2w):
         q = matrix_to_quat_xyzw(pose[:3, :3])
         x, y, z = pose[:3, 3]
         lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 from typing import Generic, Literal, TypeVar
 
+from pipeline.errors import StageFailure
+
 T = TypeVar("T")
 Policy = Literal["block", "keep_newest"]
 
@@ -17,6 +19,17 @@ class EndOfStream:
 
 
 END = EndOfStream()
+
+
+class StreamFailed(EndOfStream):
+    """The end of a stream cut short by a failing stage: the stages after it finish the items
+    before it, then the runtime raises `failure`."""
+
+    def __init__(self, failure: StageFailure) -> None:
+        self.failure = failure
+
+    def __repr__(self) -> str:
+        return f"END({self.failure})"
 
 
 class StageQueue(Generic[T]):

@@ -40,6 +40,7 @@ def frame_row(result: FrameResult) -> dict[str, Any]:
 
 
 RowWriter = Callable[[list[dict[str, Any]]], None]
+WriteFailure = Callable[[str, OSError], None]  # (what could not be written, why)
 
 FPS_WINDOW = 10  # frames over which the bar's frames/s is measured
 ATE_EVERY_S = 1.0  # the bar's ATE so far is recomputed at most this often (all frames so far each time)
@@ -64,10 +65,19 @@ def recent_fps(arrivals: list[float]) -> float:
 class ResultSink:
     """Keeps every frame's result, hands its row to `write_rows` (the run folder's frames.csv)
     and advances the progress bar: frames/s, Gaussians, lost frames, the ATE so far when the
-    frames bring a reference pose, and what `show` adds (a live daemon's counters)."""
+    frames bring a reference pose, and what `show` adds (a live daemon's counters). A row that cannot be written is reported to
+    `on_write_error` and SLAM goes on (without one, the OSError ends the run)."""
 
-    def __init__(self, write_rows: RowWriter, total: int | None, initial: int = 0, progress: bool = True) -> None:
+    def __init__(
+        self,
+        write_rows: RowWriter,
+        total: int | None,
+        initial: int = 0,
+        progress: bool = True,
+        on_write_error: WriteFailure | None = None,
+    ) -> None:
         self.write_rows = write_rows
+        self.on_write_error = on_write_error
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
@@ -86,7 +96,12 @@ class ResultSink:
         if result.received_at is not None:
             result.age_s = now - result.received_at
         self.results.append(result)
-        self.write_rows([frame_row(result)])
+        try:
+            self.write_rows([frame_row(result)])
+        except OSError as exc:
+            if self.on_write_error is None:
+                raise
+            self.on_write_error(f"the row of frame {result.index} in frames.csv", exc)
         if result.lost:
             self.lost_frames += 1
             log.warning("frame %d: tracking lost: %s", result.index, result.lost)

@@ -16,7 +16,7 @@ from typing import Any
 from torch.profiler import record_function
 
 from pipeline.errors import StageFailure
-from pipeline.stages.queues import END, EndOfStream, StageQueue
+from pipeline.stages.queues import EndOfStream, StageQueue, StreamFailed
 
 
 @dataclass
@@ -64,7 +64,8 @@ async def transform_stage(
     stats: StageStats,
 ) -> None:
     """Apply `fn` to every item in order, off the event loop, inside a profiler range named
-    `name`. An item for which `fn` returns None is dropped (a live frame found unusable)."""
+    `name`. An item for which `fn` returns None is dropped (a live frame found unusable). When
+    `fn` raises, the stream ends there: the items before it go on, then StreamFailed."""
     loop = asyncio.get_running_loop()
     ranged = partial(_in_range, name, fn)
     while not isinstance(item := await inbox.get(), EndOfStream):
@@ -72,8 +73,9 @@ async def transform_stage(
         try:
             result = await loop.run_in_executor(executor, ranged, item)
         except Exception as exc:
-            raise StageFailure(name, frame_index(item), exc) from exc
+            await outbox.put(StreamFailed(StageFailure(name, frame_index(item), exc)))
+            return
         stats.record(time.perf_counter() - start)
         if result is not None:
             await outbox.put(result)
-    await outbox.put(END)
+    await outbox.put(item)  # the end marker as it came: END, or an upstream StreamFailed

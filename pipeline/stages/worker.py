@@ -33,13 +33,14 @@ async def dedicated_thread_stage(
     pass_over: Callable[[Any], Any] | None = None,
     finish_on_stop: bool = False,
     interrupt: Callable[[], None] | None = None,
-) -> None:
+) -> EndOfStream:
     """Apply `fn` to every item in order in a thread of its own. At most `in_flight` items are
     handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
     thread finishes the item in hand and takes no other, unless `finish_on_stop` (then it goes
     on to the inbox's end). With `pass_over`, of the items waiting in the inbox only the newest
     goes to `fn`; the older ones go, in order, to `pass_over` (which may return None: dropped). `interrupt` is called when the
-    stage ends, to unblock an `fn` that waits for another stage."""
+    stage ends, to unblock an `fn` that waits for another stage. -> the end marker passed on (END,
+    or the StreamFailed of a stage before this one); a failure of `fn` itself is raised."""
     loop = asyncio.get_running_loop()
     handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
     finished: asyncio.Queue[Any] = asyncio.Queue()
@@ -67,7 +68,7 @@ async def dedicated_thread_stage(
             except BaseException as exc:  # reported on the loop, which stops the graph
                 post(StageFailure(name, frame_index(batch[-1]), exc))
                 return
-        post(END)
+        post(batch if isinstance(batch, EndOfStream) else END)
 
     def stopping() -> bool:
         return stop.is_set() and not finish_on_stop
@@ -85,7 +86,7 @@ async def dedicated_thread_stage(
             if batch and not stopping():
                 handoff.put(batch)
             if ends or stopping():
-                handoff.put(END)
+                handoff.put(waiting[-1] if ends and not stopping() else END)
                 return
 
     async def halt_on_stop() -> None:
@@ -116,4 +117,5 @@ async def dedicated_thread_stage(
             interrupt()
         handoff.put(END)  # wakes the worker if it waits for an item
         await asyncio.to_thread(thread.join)
-    await outbox.put(END)
+    await outbox.put(results)
+    return results

@@ -82,11 +82,32 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["tracking.align_color_sigma=0"], "tracking.align_depth_sigma_m and align_color_sigma must be > 0"),
         (["tracking.align_min_inliers=1.5"], "tracking.align_min_inliers must be in [0, 1]"),
         (["tracking.align_min_silhouette=1"], "tracking.align_min_silhouette must be in [0, 1)"),
+        (["tracking.lr_translation=nan"], "bad value for 'tracking.lr_translation': 'nan' (expected a finite number)"),
+        (["mapping.lr_colors=inf"], "bad value for 'mapping.lr_colors'"),
+        (["mapping.lr_means=-0.1"], "mapping.lr_means must be >= 0"),
+        (["tracking.lr_rotation=-1e-3"], "tracking.lr_rotation must be >= 0"),
+        (["loss.depth_weight=-1"], "loss weights must be >= 0"),
+        (["dataset.width=-64", "dataset.height=-48"], "dataset.width and dataset.height must be >= 0"),
+        (["live.width=-1", "live.height=-1"], "live.width and live.height must be >= 0"),
+        (["synthetic.width=-8"], "synthetic sizes must be >= 0"),
+        (["dataset.intrinsics=0,500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
+        (["dataset.intrinsics=500,-500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
+        (["live.status_port=65536"], "live.status_port must be a port, 1 to 65535"),
+        (["live.status_port=-1"], "live.status_port must be a port"),
+        (["viewer.port=0"], "viewer.port must be a port"),
+        (["run.save_every_s=0"], "run.save_every_s must be > 0"),
     ],
 )
 def test_bad_overrides_name_the_key(overrides: list[str], message: str) -> None:
     with pytest.raises(UserError, match=re.escape(message)):
         load_config("base", overrides=overrides)
+
+
+def test_a_nan_in_a_config_file_names_its_key(tmp_path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("[mapping]\nlr_opacities = nan\n")
+    with pytest.raises(UserError, match="bad value for 'mapping.lr_opacities'"):
+        load_config("tiny", path)
 
 
 def test_unknown_preset() -> None:

@@ -154,3 +154,85 @@ def test_tum_camera_from_folder_name(tum_seq: Path, tmp_path: Path) -> None:
     assert open_dataset(DatasetConfig(path=str(renamed))).intrinsics[0, 0] == pytest.approx(520.9)
     explicit = open_dataset(DatasetConfig(path=str(renamed), intrinsics=(1.0, 2.0, 3.0, 4.0)))
     assert explicit.intrinsics[1, 1] == 2.0
+
+
+def test_tum_lists_out_of_timestamp_order_are_sorted_with_a_warning(tum_seq: Path, tmp_path: Path, caplog) -> None:
+    path = copy_of(tum_seq, tmp_path)
+    lines = (path / "rgb.txt").read_text().splitlines()
+    header, rows = (
+        [line for line in lines if line.startswith("#")],
+        [line for line in lines if not line.startswith("#")],
+    )
+    (path / "rgb.txt").write_text("\n".join(header + rows[::-1]) + "\n")
+    with caplog.at_level("WARNING", "gsplatam"):
+        dataset = open_dataset(DatasetConfig(path=str(path)))
+    assert "rgb.txt: timestamps out of order; sorted" in caplog.text
+    in_order = open_dataset(DatasetConfig(path=str(tum_seq)))
+    assert [r.timestamp for r in dataset.refs] == [r.timestamp for r in in_order.refs]
+    assert [r.color_path.name for r in dataset.refs] == [r.color_path.name for r in in_order.refs]
+
+
+@pytest.mark.parametrize("resize", [None, (32, 24)])
+def test_a_frame_of_another_size_mid_sequence_is_refused_by_name(
+    replica_seq: Path, tmp_path: Path, resize: tuple[int, int] | None
+) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    cv2.imwrite(str(path / "results" / "frame000003.jpg"), np.zeros((24, 32, 3), np.uint8))
+    cv2.imwrite(str(path / "results" / "depth000003.png"), np.ones((24, 32), np.uint16))
+    width, height = resize or (0, 0)
+    dataset = open_dataset(DatasetConfig(path=str(path), width=width, height=height))
+    assert dataset.decode(dataset.refs[2]).color.shape[:2] == (height or 48, width or 64)
+    with pytest.raises(DataError, match="frame000003.jpg is 32x24, the sequence's frames are 64x48"):
+        dataset.decode(dataset.refs[3])
+
+
+def test_a_first_frame_without_valid_depth_is_refused_by_name(replica_seq: Path, tmp_path: Path) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    cv2.imwrite(str(path / "results" / "depth000000.png"), np.zeros((48, 64), np.uint16))
+    dataset = open_dataset(DatasetConfig(path=str(path)))
+    with pytest.raises(DataError, match="depth000000.png holds no valid depth"):
+        dataset.decode(dataset.refs[0])
+    later = open_dataset(DatasetConfig(path=str(path), start=1))  # the first frame kept is what counts
+    assert (later.decode(later.refs[0]).depth > 0).any()
+
+
+def test_a_replica_trajectory_with_fewer_poses_than_frames(replica_seq: Path, tmp_path: Path) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    rows = (path / "traj.txt").read_text().splitlines()
+    (path / "traj.txt").write_text("\n".join(rows[:-2]) + "\n")
+    with pytest.raises(DataError, match="traj.txt has 4 poses but .* holds 6 colour frames"):
+        open_dataset(DatasetConfig(path=str(path)))
+
+
+@pytest.mark.parametrize(
+    "row, message",
+    [
+        ("nan 0 0 0 0 0 1", "NaN or infinite value"),
+        ("0 0 inf 0 0 0 1", "NaN or infinite value"),
+        ("0 0 0 0 0 0 0", "the quaternion qx qy qz qw is zero"),
+    ],
+)
+def test_bad_ground_truth_poses_name_their_line_at_open(tum_seq: Path, tmp_path: Path, row: str, message: str) -> None:
+    path = copy_of(tum_seq, tmp_path)
+    lines = (path / "groundtruth.txt").read_text().splitlines()
+    lines[3] = f"{lines[3].split()[0]} {row}"
+    (path / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=f"groundtruth.txt:4: {message}"):
+        open_dataset(DatasetConfig(path=str(path)))
+
+
+def test_a_nan_in_a_replica_trajectory_names_its_line(replica_seq: Path, tmp_path: Path) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    rows = (path / "traj.txt").read_text().splitlines()
+    rows[1] = " ".join(["nan"] + rows[1].split()[1:])
+    (path / "traj.txt").write_text("\n".join(rows) + "\n")
+    with pytest.raises(DataError, match="traj.txt:2: NaN or infinite value"):
+        open_dataset(DatasetConfig(path=str(path)))
+
+
+@pytest.mark.parametrize("values", ["0 32 32 24", "32 -32 32 24"])
+def test_non_positive_intrinsics_in_the_file_are_refused(replica_seq: Path, tmp_path: Path, values: str) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    (path / "intrinsics.txt").write_text(values + "\n")
+    with pytest.raises(DataError, match="intrinsics.txt: fx fy cx cy must be positive"):
+        open_dataset(DatasetConfig(path=str(path)))

@@ -67,6 +67,7 @@ def write_gt_run(root: Path) -> Path:
         rng_state=random.Random(0).getstate(),
         generator_state=torch.Generator().get_state(),
     )
+    (root / "run").mkdir()
     folder = RunFolder(root / "run")
     folder.write_config(replace(load_config("tiny"), dataset=DatasetConfig(path=str(root / "room"))))
     folder.write_state(checkpoint, np.array([r.timestamp for r in dataset.refs]), None)

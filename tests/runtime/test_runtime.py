@@ -137,7 +137,28 @@ def test_a_failing_stage_stops_the_graph_and_names_stage_and_frame(where: str) -
     g = graph(100, slam, decode=failing_decode if where == "decode" else jittery)
     with pytest.raises(StageFailure, match=f"stage '{where}' failed on frame 7: boom"):
         run(g, timeout=10.0)
-    assert len(slam.seen) <= 7
+    if where == "decode":  # the stream ends at the bad frame: every frame before it is processed
+        assert slam.seen == list(range(7)) and [r.index for r in g.sink.results] == list(range(7))
+    else:
+        assert len(slam.seen) <= 7
+
+
+def test_the_handlers_in_place_before_a_run_are_back_after_it() -> None:
+    import signal
+
+    from pipeline.runtime import execute
+
+    def mine(signum, frame) -> None:  # type: ignore[no-untyped-def]
+        pass
+
+    previous = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for loader in ("pipelined", "sync"):
+            execute(graph(3, FakeSlam()), loader)
+            assert signal.getsignal(signal.SIGINT) is mine and signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 @pytest.mark.parametrize("stop_after", [0.0, 0.013, 0.05, 0.107, 0.2])

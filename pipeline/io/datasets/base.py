@@ -38,13 +38,30 @@ class Dataset:
     intrinsics: np.ndarray  # [3, 3] at the stored image size
     depth_scale: float  # stored uint16 units per metre
     resize: tuple[int, int] | None  # (width, height) or None for native
+    size: tuple[int, int]  # (width, height) of the stored frames: the first frame's
 
     def __len__(self) -> int:
         return len(self.refs)
 
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of the decoded frames."""
+        return self.resize or self.size
+
     def decode(self, ref: FrameRef) -> Frame:
+        """The frame `ref` at the working size. Raises DataError naming the file for a frame
+        that cannot be read, of another size than the first, or (the first frame, which the
+        map starts from) without any valid depth."""
         color = read_color(ref.color_path)
+        width, height = self.size
+        if color.shape[:2] != (height, width):
+            raise DataError(
+                f"colour image {ref.color_path} is {color.shape[1]}x{color.shape[0]}, "
+                f"the sequence's frames are {width}x{height}"
+            )
         depth = read_depth(ref.depth_path, self.depth_scale, color.shape[:2])
+        if ref.index == 0 and not (depth > 0).any():
+            raise DataError(f"depth image {ref.depth_path} holds no valid depth: the map cannot start from it")
         intrinsics = self.intrinsics.copy()
         if self.resize is not None:
             color, depth, intrinsics = resize_rgbd(color, depth, intrinsics, self.resize)
@@ -70,6 +87,8 @@ def read_intrinsics_file(folder: Path) -> np.ndarray | None:
     table = read_numeric_table(path, 4)
     if len(table) != 1:
         raise DataError(f"{path}: expected one line 'fx fy cx cy'")
+    if not (table[0] > 0).all():
+        raise DataError(f"{path}: fx fy cx cy must be positive, got {' '.join(f'{v:g}' for v in table[0])}")
     return intrinsics_matrix(*table[0])
 
 
@@ -94,3 +113,9 @@ def slice_refs(refs: list[FrameRef], config: DatasetConfig) -> list[FrameRef]:
     if len(known) == len(poses):
         poses = list(relative_poses(np.stack(known)))
     return [FrameRef(i, r.timestamp, r.color_path, r.depth_path, pose) for i, (r, pose) in enumerate(zip(kept, poses))]
+
+
+def first_frame_size(refs: list[FrameRef]) -> tuple[int, int]:
+    """(width, height) of the first frame's colour image (DataError naming it if unreadable)."""
+    color = read_color(refs[0].color_path)
+    return int(color.shape[1]), int(color.shape[0])

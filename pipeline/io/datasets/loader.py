@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from pipeline.config import DatasetConfig
@@ -25,11 +26,12 @@ def open_dataset(config: DatasetConfig) -> Dataset:
     path = Path(config.path)
     if not path.is_dir():
         raise UserError(f"dataset folder not found: {path}")
+    if not os.access(path, os.R_OK | os.X_OK):
+        raise UserError(f"cannot read the dataset folder {path}: permission denied")
     layout = detect_format(path) if config.format == "auto" else config.format
     explicit = intrinsics_matrix(*config.intrinsics) if config.intrinsics else None
     opener = replica.open_replica if layout == "replica" else tum.open_tum
     dataset = opener(path, explicit)
     resize = (config.width, config.height) if config.width > 0 else None
-    return Dataset(
-        dataset.name, dataset.format, slice_refs(dataset.refs, config), dataset.intrinsics, dataset.depth_scale, resize
-    )
+    refs = slice_refs(dataset.refs, config)
+    return Dataset(dataset.name, dataset.format, refs, dataset.intrinsics, dataset.depth_scale, resize, dataset.size)

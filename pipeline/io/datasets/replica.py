@@ -11,6 +11,7 @@ from pipeline.errors import DataError
 from pipeline.io.datasets.base import (
     Dataset,
     FrameRef,
+    first_frame_size,
     intrinsics_matrix,
     read_intrinsics_file,
     relative_poses,
@@ -30,7 +31,7 @@ def open_replica(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
         raise DataError(f"{path / 'traj.txt'} holds no poses")
     results = path / "results"
     colors = sorted(results.glob("frame*.jpg"))
-    if len(colors) < len(table):
+    if len(colors) != len(table):
         raise DataError(f"{path / 'traj.txt'} has {len(table)} poses but {results} holds {len(colors)} colour frames")
     poses = relative_poses(table.reshape(-1, 4, 4))
     refs = [
@@ -41,7 +42,7 @@ def open_replica(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
         intrinsics = read_intrinsics_file(path)
     if intrinsics is None:
         intrinsics = NATIVE_INTRINSICS
-    return Dataset(path.name, "replica", refs, intrinsics, DEPTH_SCALE, None)
+    return Dataset(path.name, "replica", refs, intrinsics, DEPTH_SCALE, None, first_frame_size(refs))
 
 
 def write_replica(

@@ -15,6 +15,7 @@ from pipeline.errors import UserError
 from pipeline.io.datasets.replica import write_replica
 from pipeline.io.datasets.synthetic import CPU, sequence
 from pipeline.io.datasets.tum import write_tum
+from pipeline.io.folders import make_folder
 
 MANIFEST = "synthetic.json"
 
@@ -33,6 +34,7 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, 
         raise UserError(f"unknown layout '{config.layout}' (choose replica or tum)")
     if config.layout == "replica" and (config.depth_noise or config.holes or config.time_jitter):
         raise UserError("depth noise, holes and timestamp jitter apply to the TUM layout only")
+    make_folder(path, "the sequence's folder")
     intrinsics, frames = sequence(config, device)
     frames = _with_progress(frames, config.frames, progress)
     if config.layout == "replica":

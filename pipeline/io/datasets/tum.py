@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import math
 import re
 from collections.abc import Iterable
 from pathlib import Path
@@ -13,13 +15,16 @@ from pipeline.io.datasets.base import (
     INTRINSICS_FILE,
     Dataset,
     FrameRef,
+    first_frame_size,
     intrinsics_matrix,
     read_intrinsics_file,
     relative_poses,
     write_intrinsics_file,
 )
 from pipeline.io.images import write_color, write_depth_png
-from pipeline.io.trajectory import matrix_to_quat_xyzw, pose_from_tum_row, read_numeric_table
+from pipeline.io.trajectory import matrix_to_quat_xyzw, pose_from_tum_row, read_tum_poses
+
+log = logging.getLogger("gsplatam")
 
 DEPTH_SCALE = 5000.0  # uint16 units per metre
 MAX_DT = 0.08  # seconds between associated colour, depth and pose
@@ -36,7 +41,8 @@ def camera_from_name(name: str) -> np.ndarray | None:
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
-    """`timestamp relative/path` rows -> (timestamps, paths)."""
+    """`timestamp relative/path` rows -> (timestamps, paths) in timestamp order (rows out of
+    order are sorted, as the benchmark's tools do, with a warning)."""
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:
@@ -50,13 +56,19 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
             continue
         parts = line.split()
         try:
-            stamps.append(float(parts[0]))
+            stamp = float(parts[0])
         except ValueError:
-            raise DataError(f"{path}:{number}: bad timestamp '{parts[0]}'") from None
+            stamp = math.nan
+        if not math.isfinite(stamp):
+            raise DataError(f"{path}:{number}: bad timestamp '{parts[0]}'")
+        stamps.append(stamp)
         if len(parts) < 2:
             raise DataError(f"{path}:{number}: expected 'timestamp filename'")
         names.append(parts[1])
-    return np.asarray(stamps), names
+    order = np.argsort(stamps, kind="stable")
+    if (np.diff(stamps) < 0).any():
+        log.warning("%s: timestamps out of order; sorted (as the TUM benchmark's tools do)", path)
+    return np.asarray(stamps)[order], [names[i] for i in order]
 
 
 def associate(
@@ -88,8 +100,7 @@ def open_tum(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
     gt_path = path / "groundtruth.txt"
     pose_t = gt_rows = None
     if gt_path.exists():
-        table = read_numeric_table(gt_path, 8)
-        pose_t, gt_rows = table[:, 0], table[:, 1:]
+        pose_t, gt_rows = read_tum_poses(gt_path)
     triples = associate(color_t, depth_t, pose_t)
     if not triples:
         raise DataError(f"no colour frame of {path} has depth (and pose) within {MAX_DT} s")
@@ -111,7 +122,7 @@ def open_tum(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
             f"cannot tell the TUM camera (fr1, fr2, fr3) from the folder name '{path.name}': "
             f"set dataset.intrinsics=fx,fy,cx,cy or add {INTRINSICS_FILE}"
         )
-    return Dataset(path.name, "tum", refs, intrinsics, DEPTH_SCALE, None)
+    return Dataset(path.name, "tum", refs, intrinsics, DEPTH_SCALE, None, first_frame_size(refs))
 
 
 def write_tum(

@@ -12,6 +12,7 @@ import asyncio
 import fractions
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import av
@@ -48,13 +49,15 @@ class PhoneState:
 
 class DatasetVideoTrack(MediaStreamTrack):
     """Packed depth | colour frames of the dataset at `state.fps`; ends at the dataset's end
-    unless looping."""
+    unless looping, and after `per_connection` frames (0: never), when it calls `on_limit`."""
 
     kind = "video"
 
-    def __init__(self, state: PhoneState) -> None:
+    def __init__(self, state: PhoneState, per_connection: int = 0, on_limit: Callable[[], None] | None = None) -> None:
         super().__init__()
         self.state = state
+        self.per_connection = per_connection
+        self.on_limit = on_limit
         self._start: float | None = None
         self._count = 0
 
@@ -63,6 +66,11 @@ class DatasetVideoTrack(MediaStreamTrack):
             self._start = time.monotonic()
         due = self._start + self._count / self.state.fps
         await asyncio.sleep(max(0.0, due - time.monotonic()))
+        if self.per_connection and self._count >= self.per_connection:
+            if self.on_limit is not None:
+                self.on_limit()
+            self.stop()
+            raise MediaStreamError
         index = self.state.next_index()
         if index is None:
             self.stop()
@@ -87,10 +95,13 @@ class FakePhone:
         answer_path: str = "/answer",
         codec: str = "H264",
         audio: bool = False,
+        per_connection: int = 0,
     ) -> None:
         """`answer_path`, `codec` and `audio` let tests play other senders: an older app
-        (`/sendAnswer`) or a browser-style peer (VP8 with an audio track)."""
+        (`/sendAnswer`) or a browser-style peer (VP8 with an audio track); `per_connection` > 0
+        ends each connection after that many frames, as a user stopping the stream in the app."""
         self.state = PhoneState(dataset, fps, loop)
+        self.per_connection = per_connection
         self.codec = codec
         self.audio = audio
         self.pc: RTCPeerConnection | None = None
@@ -104,6 +115,7 @@ class FakePhone:
         )
         self._runner: web.AppRunner | None = None
         self._expiry: asyncio.TimerHandle | None = None
+        self._closing: asyncio.Task[None] | None = None  # held: the loop keeps only weak references
 
     @property
     def busy(self) -> bool:
@@ -119,7 +131,8 @@ class FakePhone:
         if self.state.cursor >= len(self.state.dataset) and not self.state.loop:
             return web.json_response({"error": "the dataset has been streamed to its end"}, status=503)
         self.pc = pc = RTCPeerConnection(no_stun())
-        transceiver = pc.addTransceiver(DatasetVideoTrack(self.state), direction="sendonly")
+        track = DatasetVideoTrack(self.state, self.per_connection, self._disconnect_soon)
+        transceiver = pc.addTransceiver(track, direction="sendonly")
         codecs = [c for c in RTCRtpSender.getCapabilities("video").codecs if c.mimeType == f"video/{self.codec}"]
         transceiver.setCodecPreferences(codecs)
         if self.audio:
@@ -152,6 +165,9 @@ class FakePhone:
         if self.pc is pc and pc.signalingState == "have-local-offer":
             log.warning("fake-record3d: the offer was not answered in %g s", ANSWER_TIMEOUT_S)
             asyncio.get_running_loop().create_task(self.disconnect())
+
+    def _disconnect_soon(self) -> None:
+        self._closing = asyncio.get_running_loop().create_task(self.disconnect())
 
     async def disconnect(self) -> None:
         """End the current connection (the receiver sees the stream end); the phone is free again."""

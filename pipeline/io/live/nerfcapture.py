@@ -15,7 +15,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -124,18 +124,31 @@ def check_sample(sample: SplatCaptureFrame) -> None:
 
 @dataclass
 class NeRFCapturePacket:
-    """One checked message, with its pose already relative to the first frame."""
+    """One checked message, with its pose already relative to the first frame of its session."""
 
     index: int
     timestamp: float  # seconds, the phone's clock
     sample: SplatCaptureFrame
-    c2w: np.ndarray  # [4, 4] float64 device camera-to-world (OpenCV axes) relative to the first frame
+    c2w: np.ndarray  # [4, 4] float64 device camera-to-world (OpenCV axes) relative to its session's first frame
     received_at: float = field(default_factory=time.perf_counter)  # host clock, s
+    session: int = 0  # 0 for the first publisher session, +1 at each app restart
+    session_start: bool = False  # the first frame of a session after a restart: its pose starts a new world
+
+
+HANDLE_BITS = 2**64  # publication handles: unsigned in sample infos, signed in the matched list
+FOLLOW_SILENT_S = 2.0  # a followed publisher silent this long is left for another (a crashed app stays
+# matched until its DDS lease expires, 10 s by default)
 
 
 class NeRFCaptureSource:
     """Messages from the `Frames` topic, checked, numbered and made relative to the first pose.
     Waits for a publisher indefinitely; bad messages are logged, counted and skipped.
+
+    It follows one publisher at a time: frames of others are ignored (counted in `ignored`)
+    while it is there and sending. An app that restarts (a new publisher once the old one has gone, or ids
+    from 1 again) starts a new session that continues into the same map: ARKit's world origin
+    is new, so that session's first frame brings no pose prior, and its poses are no reference
+    for the live ATE (which covers the first session).
 
     Decoding gives a frame at the colour size: depth resized nearest (no depths mixed across
     edges), intrinsics as sent (they are the colour image's). The device pose becomes the
@@ -149,8 +162,13 @@ class NeRFCaptureSource:
         self.device_pose = device_pose
         self.domain_id = domain_id
         self.counters = SourceCounters()
+        self._publisher: int | None = None
+        self._heard_at = 0.0  # time.monotonic() of the followed publisher's last message
+        self._session = -1
+        self._session_start = False
         self._first_inverse: np.ndarray | None = None
         self._last_id: int | None = None
+        self._accepted = 0
 
     async def __aiter__(self) -> AsyncIterator[NeRFCapturePacket]:
         dp = participant(self.domain_id)
@@ -163,20 +181,32 @@ class NeRFCaptureSource:
             waiting_logged = False
             while True:
                 samples = await loop.run_in_executor(pool, _wait_and_take, waitset, reader, condition)
-                self.counters.connected = bool(reader.get_matched_publications())
+                alive = {handle % HANDLE_BITS for handle in reader.get_matched_publications()}
+                self.counters.connected = bool(alive)
                 if not samples and not self.counters.connected and not waiting_logged:
                     log.info("nerfcapture: waiting for a publisher on DDS domain %d, topic '%s'", self.domain_id, TOPIC)
                     waiting_logged = True
                 for sample in samples:
-                    packet = self._accept(sample)
+                    packet = self._accept(sample, sample.sample_info.publication_handle % HANDLE_BITS, alive)
                     if packet is not None:
                         yield packet
 
-    def _accept(self, sample: SplatCaptureFrame) -> NeRFCapturePacket | None:
+    def _accept(self, sample: SplatCaptureFrame, publisher: int, alive: Collection[int]) -> NeRFCapturePacket | None:
+        """Check one message from `publisher` (`alive`: the publishers matched now)."""
         self.counters.received += 1
+        now = time.monotonic()
+        if publisher != self._publisher:
+            if self._publisher in alive and now - self._heard_at < FOLLOW_SILENT_S:
+                self.counters.ignored += 1
+                return None
+            self._new_session(f"following publisher {publisher:x}")
+            self._publisher = publisher
+        self._heard_at = now
         if not sample.has_depth:
             self.counters.skipped += 1
             return None
+        if self._last_id is not None and sample.id <= 1 < self._last_id:
+            self._new_session(f"ids from {sample.id} again after {self._last_id}: the app restarted")
         try:
             if self._last_id is not None and sample.id <= self._last_id:
                 raise DataError(f"id {sample.id} after {self._last_id} (duplicate or out of order)")
@@ -190,26 +220,50 @@ class NeRFCaptureSource:
         c2w = arkit_to_opencv(sample.transform_matrix)
         if self._first_inverse is None:
             self._first_inverse = np.linalg.inv(c2w)
-        index = self.counters.received - self.counters.skipped - self.counters.rejected - 1
-        return NeRFCapturePacket(index, float(sample.timestamp), sample, self._first_inverse @ c2w)
+        start, self._session_start = self._session_start, False
+        self._accepted += 1
+        return NeRFCapturePacket(
+            self._accepted - 1,
+            float(sample.timestamp),
+            sample,
+            self._first_inverse @ c2w,
+            session=self._session,
+            session_start=start,
+        )
 
-    def decode(self, packet: NeRFCapturePacket) -> Frame:
+    def _new_session(self, why: str) -> None:
+        self._session += 1
+        self._last_id = None
+        self._first_inverse = None
+        self._session_start = self._session > 0
+        if self._session > 0:
+            log.info("nerfcapture: %s; continuing into the same map", why)
+        else:
+            log.info("nerfcapture: %s", why)
+
+    def decode(self, packet: NeRFCapturePacket) -> Frame | None:
+        """-> the frame, or None when it has no valid depth (counted as skipped)."""
         s = packet.sample
         # sequences arrive as lists of ints from DDS (bytes when built locally); bytes() takes both
         color = np.frombuffer(bytes(s.image), np.uint8).reshape(s.height, s.width, 3)
         raw = np.frombuffer(bytes(s.depth_image), np.float32).reshape(s.depth_height, s.depth_width)
         depth: np.ndarray = np.where(np.isfinite(raw) & (raw > 0), raw, 0.0).astype(np.float32)
+        if not (depth > 0).any():
+            self.counters.skipped += 1
+            log.warning("nerfcapture: frame id %d skipped: no valid depth", s.id)
+            return None
         if depth.shape != color.shape[:2]:
             depth = cv2.resize(depth, (s.width, s.height), interpolation=cv2.INTER_NEAREST)
         intrinsics = np.array([[s.fl_x, 0.0, s.cx], [0.0, s.fl_y, s.cy], [0.0, 0.0, 1.0]])
+        prior = self.device_pose == "initial_guess" and not packet.session_start
         return Frame(
             packet.index,
             packet.timestamp,
             color,
             depth,
             intrinsics,
-            c2w_gt=packet.c2w if self.device_pose == "groundtruth" else None,
-            c2w_prior=packet.c2w if self.device_pose == "initial_guess" else None,
+            c2w_gt=packet.c2w if self.device_pose == "groundtruth" and packet.session == 0 else None,
+            c2w_prior=packet.c2w if prior else None,
             received_at=packet.received_at,
         )
 

@@ -16,6 +16,7 @@ import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import Any
+from urllib.parse import urlsplit
 
 import aiohttp
 import av
@@ -24,7 +25,7 @@ from aiortc.contrib.media import MediaBlackhole
 from aiortc.mediastreams import MediaStreamError, MediaStreamTrack
 
 from pipeline.config import LiveConfig
-from pipeline.errors import DataError
+from pipeline.errors import DataError, UserError
 from pipeline.frame import Frame
 from pipeline.io.images import resize_rgbd
 from pipeline.io.live.record3d_format import intrinsics_from_metadata, unpack_frame
@@ -61,16 +62,54 @@ def no_stun() -> RTCConfiguration:
     return RTCConfiguration(iceServers=[])
 
 
-async def _get_json(http: aiohttp.ClientSession, url: str) -> Any:
+def phone_url(address: str) -> str:
+    """The phone's address as the app shows it (`192.168.1.20`, `http://phone:8000/`) -> its
+    base URL; UserError for an address that is not one."""
+    url = address.strip()
+    if "://" not in url:
+        url = "http://" + url
+    url = url.rstrip("/")
     try:
-        async with http.get(url) as response:
-            if response.status == 403:
-                raise PhoneBusy(f"{url}: HTTP 403, the phone is streaming to another receiver")
-            if response.status != 200:
-                raise ProtocolError(f"{url}: HTTP {response.status} {(await response.text())[:120]!r}")
-            text = await response.text()
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 - parsing the port raises ValueError for a bad one
+    except ValueError as exc:
+        raise UserError(f"bad phone address '{address}': {exc}") from None
+    if parts.scheme not in ("http", "https"):
+        raise UserError(f"bad phone address '{address}': the app serves http://, not {parts.scheme}://")
+    if not parts.hostname or parts.path.strip("/") or parts.query or parts.fragment:
+        raise UserError(f"bad phone address '{address}': expected http://HOST or http://HOST:PORT")
+    return url
+
+
+def _reply_text(url: str, body: bytes) -> str:
+    try:
+        return body.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ProtocolError(f"{url}: the reply is not UTF-8 text: {body[:40]!r}") from None
+
+
+async def _request(http: aiohttp.ClientSession, method: str, url: str, body: Any = None) -> tuple[int, str]:
+    """-> (HTTP status, reply text). Whatever the phone's address answers, a failure is a
+    PhoneError: no connection or a timeout (PhoneUnreachable), a reply that is not HTTP, too
+    large a header, a redirect loop, a body that is not text (ProtocolError)."""
+    try:
+        async with http.request(method, url, json=body) as response:
+            return response.status, _reply_text(url, await response.read())
     except (aiohttp.ClientConnectionError, TimeoutError) as exc:
         raise PhoneUnreachable(f"{url}: cannot connect ({exc.__class__.__name__}: {exc})") from exc
+    except aiohttp.TooManyRedirects as exc:
+        raise ProtocolError(f"{url}: redirected in a loop ({len(exc.history)} redirects)") from exc
+    except (aiohttp.ClientError, ValueError) as exc:  # ValueError: e.g. an unusable redirect address
+        said = " ".join(str(exc).split())[:160]  # aiohttp's parser errors span lines
+        raise ProtocolError(f"{url}: not a usable HTTP reply ({exc.__class__.__name__}: {said})") from exc
+
+
+async def _get_json(http: aiohttp.ClientSession, url: str) -> Any:
+    status, text = await _request(http, "GET", url)
+    if status == 403:
+        raise PhoneBusy(f"{url}: HTTP 403, the phone is streaming to another receiver")
+    if status != 200:
+        raise ProtocolError(f"{url}: HTTP {status} {text[:120]!r}")
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
@@ -80,15 +119,12 @@ async def _get_json(http: aiohttp.ClientSession, url: str) -> Any:
 async def _post_answer(http: aiohttp.ClientSession, base: str, sdp: str) -> None:
     body = {"type": "answer", "data": sdp}
     for path in ("/answer", "/sendAnswer"):
-        try:
-            async with http.post(base + path, json=body) as response:
-                if response.status == 404:
-                    continue
-                if response.status >= 300:
-                    raise ProtocolError(f"{base}{path}: HTTP {response.status} {(await response.text())[:120]!r}")
-                return
-        except (aiohttp.ClientConnectionError, TimeoutError) as exc:
-            raise PhoneUnreachable(f"{base}{path}: cannot connect ({exc})") from exc
+        status, text = await _request(http, "POST", base + path, body)
+        if status == 404:
+            continue
+        if status >= 300:
+            raise ProtocolError(f"{base}{path}: HTTP {status} {text[:120]!r}")
+        return
     raise ProtocolError(f"{base}: neither /answer nor /sendAnswer exists (HTTP 404)")
 
 
@@ -195,9 +231,7 @@ class Record3DSource:
     last_index = None
 
     def __init__(self, url: str, config: LiveConfig, size: tuple[int, int] | None = None, max_width: int = 0) -> None:
-        self.url = url.rstrip("/")
-        if "://" not in self.url:
-            self.url = "http://" + self.url
+        self.url = phone_url(url)
         self.config = config
         self.counters = SourceCounters()
         self.size = size
@@ -219,6 +253,8 @@ class Record3DSource:
                     yield self._packet(image, session.metadata)
             except PhoneError as exc:
                 self.counters.last_error = str(exc)
+            except Exception as exc:  # anything else the phone's replies cause (e.g. in aiortc): never fatal
+                self.counters.last_error = f"unexpected {exc.__class__.__name__} from the phone: {exc}"
             finally:
                 self.counters.connected = False
                 await session.close()

@@ -30,6 +30,11 @@ LEGACY_NAME = "checkpoint.pt"  # the pickle checkpoints of gsplatam 0.1, never l
 def write_checkpoint(path: Path, checkpoint: Checkpoint, run: dict[str, Any]) -> None:
     """Write `checkpoint` atomically; `run` (JSON-able) describes the run it belongs to, so that a
     resume can check it continues the same dataset, size and map kind."""
+    atomic_write_bytes(path, checkpoint_bytes(checkpoint, run))
+
+
+def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
+    """The checkpoint file's bytes (see `write_checkpoint`)."""
     tensors = {f"gaussians.{n}": getattr(checkpoint.gaussians, n).contiguous() for n in PARAMETER_NAMES}
     for i, k in enumerate(checkpoint.keyframes):
         tensors.update(
@@ -49,8 +54,7 @@ def write_checkpoint(path: Path, checkpoint: Checkpoint, run: dict[str, Any]) ->
         "loss_history": checkpoint.loss_history,
         "rng_state": _json_rng_state(checkpoint.rng_state),
     }
-    data = save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
-    atomic_write_bytes(path, data)
+    return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
 
 
 def read_checkpoint(path: Path) -> tuple[Checkpoint, dict[str, Any]]:

@@ -71,7 +71,12 @@ def ply_bytes(vertices: dict[str, np.ndarray], faces: np.ndarray | None = None) 
 
 def write_ply(path: Path, gaussians: Gaussians) -> None:
     """Write the map atomically (the layout of the module docstring)."""
-    atomic_write_bytes(path, ply_bytes(gaussian_columns(gaussians)))
+    atomic_write_bytes(path, gaussian_ply_bytes(gaussians))
+
+
+def gaussian_ply_bytes(gaussians: Gaussians) -> bytes:
+    """The map as the bytes of a PLY file in the layout of the module docstring."""
+    return ply_bytes(gaussian_columns(gaussians))
 
 
 def read_ply(path: Path) -> Gaussians:
@@ -86,20 +91,33 @@ def read_ply(path: Path) -> Gaussians:
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in header:
         raise DataError(f"{path}: only binary little-endian PLY is supported")
-    count, names, types = 0, [], []
+    count, names, types = None, [], []
     for line in header:
         parts = line.split()
         if parts[:2] == ["element", "vertex"]:
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise DataError(f"{path}: malformed header line '{line}'")
             count = int(parts[2])
         elif parts[:1] == ["property"] and len(parts) == 3:
             if parts[1] not in PLY_TYPES:
                 raise DataError(f"{path}: unsupported property type {parts[1]}")
             types.append(PLY_TYPES[parts[1]])
             names.append(parts[2])
+    if count is None:
+        raise DataError(f"{path}: the header has no 'element vertex' line")
     missing = [p for p in PROPERTIES if p not in names and not p.startswith("n")]
     if missing:
         raise DataError(f"{path}: not a Gaussian-splatting PLY (missing {', '.join(missing)})")
-    table = np.frombuffer(raw, dtype=np.dtype(list(zip(names, types))), count=count, offset=end + len(b"end_header\n"))
+    try:
+        layout = np.dtype(list(zip(names, types)))
+    except ValueError as exc:  # e.g. a property named twice
+        raise DataError(f"{path}: malformed header ({exc})") from None
+    body = len(raw) - end - len(b"end_header\n")
+    if body < count * layout.itemsize:
+        raise DataError(
+            f"{path} is truncated: its header announces {count} Gaussians, the file holds {body // layout.itemsize}"
+        )
+    table = np.frombuffer(raw, dtype=layout, count=count, offset=end + len(b"end_header\n"))
 
     def cols(*keys: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=1))

@@ -72,6 +72,13 @@ def _packet_source() -> NeRFCaptureSource:
     return NeRFCaptureSource()
 
 
+PHONE, OTHER = 0xA1, 0xB2  # publication handles
+
+
+def _accept(source: NeRFCaptureSource, sample, publisher: int = PHONE, alive: tuple[int, ...] = (PHONE,)):
+    return source._accept(sample, publisher, alive)
+
+
 def _sample(dataset: Dataset, frame_id: int, **changes):
     frame = dataset.decode(dataset.refs[frame_id % len(dataset)])
     return replace(sample_from_frame(frame, frame_id, ARKIT_WORLD @ frame.c2w_gt), **changes)
@@ -89,22 +96,65 @@ def _sample(dataset: Dataset, frame_id: int, **changes):
 )
 def test_malformed_messages_are_skipped_counted_and_named(capture_dataset: Dataset, changes, message, caplog) -> None:
     source = _packet_source()
-    assert source._accept(_sample(capture_dataset, 1, **changes)) is None
+    assert _accept(source, _sample(capture_dataset, 1, **changes)) is None
     assert source.counters.rejected == 1 and message in source.counters.last_error
-    assert source._accept(_sample(capture_dataset, 2)) is not None  # the stream goes on
+    assert _accept(source, _sample(capture_dataset, 2)) is not None  # the stream goes on
 
 
 def test_duplicate_out_of_order_and_depthless_frames_are_skipped(capture_dataset: Dataset) -> None:
     source = _packet_source()
-    first = source._accept(_sample(capture_dataset, 3))
+    first = _accept(source, _sample(capture_dataset, 3))
     assert first is not None and first.index == 0
     assert np.allclose(first.c2w, np.eye(4), atol=1e-6)  # relative to the first frame
-    assert source._accept(_sample(capture_dataset, 3)) is None
-    assert source._accept(_sample(capture_dataset, 2)) is None
-    assert source._accept(_sample(capture_dataset, 4, has_depth=False)) is None
-    second = source._accept(_sample(capture_dataset, 5))
+    assert _accept(source, _sample(capture_dataset, 3)) is None
+    assert _accept(source, _sample(capture_dataset, 2)) is None
+    assert _accept(source, _sample(capture_dataset, 4, has_depth=False)) is None
+    second = _accept(source, _sample(capture_dataset, 5))
     assert second is not None and second.index == 1
     assert source.counters.rejected == 2 and source.counters.skipped == 1 and source.counters.received == 5
+
+
+def test_an_app_restarting_its_ids_continues_into_the_same_map(capture_dataset: Dataset) -> None:
+    source = _packet_source()
+    first = [_accept(source, _sample(capture_dataset, i)) for i in (1, 2, 3)]
+    again = [_accept(source, _sample(capture_dataset, i)) for i in (1, 2)]
+    packets = first + again
+    assert all(p is not None for p in packets) and source.counters.rejected == 0
+    assert [p.index for p in packets] == [0, 1, 2, 3, 4]
+    assert [p.session for p in packets] == [0, 0, 0, 1, 1] and [p.session_start for p in packets] == [0, 0, 0, 1, 0]
+    assert np.allclose(again[0].c2w, np.eye(4), atol=1e-6)  # a new ARKit world: relative to its own first frame
+    restarted = NeRFCaptureSource("initial_guess").decode(again[0])
+    assert restarted is not None and restarted.c2w_prior is None  # no prior across two worlds
+    assert NeRFCaptureSource("initial_guess").decode(again[1]).c2w_prior is not None  # type: ignore[union-attr]
+    assert NeRFCaptureSource("groundtruth").decode(again[1]).c2w_gt is None  # type: ignore[union-attr]
+
+
+def test_one_publisher_is_followed_others_are_ignored_until_it_leaves(capture_dataset: Dataset) -> None:
+    source = _packet_source()
+    both = (PHONE, OTHER)
+    assert _accept(source, _sample(capture_dataset, 1), PHONE, both) is not None
+    assert _accept(source, _sample(capture_dataset, 1), OTHER, both) is None
+    assert _accept(source, _sample(capture_dataset, 7), OTHER, both) is None
+    assert _accept(source, _sample(capture_dataset, 2), PHONE, both) is not None
+    assert source.counters.ignored == 2 and source.counters.rejected == 0
+    after = _accept(source, _sample(capture_dataset, 1), OTHER, (OTHER,))  # the followed one has gone
+    assert after is not None and after.index == 2 and after.session == 1 and after.session_start
+    assert _accept(source, _sample(capture_dataset, 3), PHONE, (PHONE, OTHER)) is None  # now the other is followed
+    assert source.counters.ignored == 3
+
+
+def test_a_silent_publisher_is_left_for_one_that_sends(capture_dataset: Dataset, monkeypatch) -> None:
+    """A crashed app stays matched until its DDS lease expires: silence is enough to switch."""
+    import pipeline.io.live.nerfcapture as nerfcapture
+
+    clock = [100.0]
+    monkeypatch.setattr(nerfcapture.time, "monotonic", lambda: clock[0])
+    source = _packet_source()
+    assert _accept(source, _sample(capture_dataset, 4), PHONE, (PHONE, OTHER)) is not None
+    assert _accept(source, _sample(capture_dataset, 1), OTHER, (PHONE, OTHER)) is None
+    clock[0] += nerfcapture.FOLLOW_SILENT_S + 0.1
+    switched = _accept(source, _sample(capture_dataset, 1), OTHER, (PHONE, OTHER))
+    assert switched is not None and switched.session == 1 and source.counters.ignored == 1
 
 
 @pytest.mark.parametrize("use", ["initial_guess", "groundtruth", "ignore"])
@@ -165,6 +215,41 @@ def test_loopback_receives_every_frame_bit_identical(capture_dataset: Dataset, d
         assert bytes(packet.sample.depth_image) == sent.depth_image
         assert (packet.sample.fl_x, packet.sample.cx) == (np.float32(sent.fl_x), np.float32(sent.cx))
         assert np.abs(packet.c2w - frame.c2w_gt).max() < 1e-6
+
+
+@pytest.mark.live
+def test_a_restarted_publisher_continues_the_stream(capture_dataset: Dataset, dds_domain: int) -> None:
+    """The app stops and starts again: a new publisher whose ids count from 1 again."""
+    halves = [
+        replace(capture_dataset, refs=capture_dataset.refs[:5]),
+        replace(capture_dataset, refs=capture_dataset.refs[5:]),
+    ]
+    stop = threading.Event()
+
+    def publish_twice() -> None:
+        for half in halves:
+            publish_dataset(half, 20.0, 30.0, stop, dds_domain)
+
+    async def receive(source: NeRFCaptureSource) -> list[NeRFCapturePacket]:
+        packets = []
+        async with asyncio.timeout(60):
+            async for packet in source:
+                packets.append(packet)
+                if len(packets) == len(capture_dataset):
+                    return packets
+        return packets
+
+    publisher = threading.Thread(target=publish_twice)
+    publisher.start()
+    source = NeRFCaptureSource(domain_id=dds_domain)
+    try:
+        packets = asyncio.run(receive(source))
+    finally:
+        stop.set()
+        publisher.join(timeout=10)
+    assert [p.index for p in packets] == list(range(len(capture_dataset)))
+    assert [p.sample.id for p in packets] == [1, 2, 3, 4, 5] + list(range(1, len(capture_dataset) - 4))
+    assert [p.session for p in packets].count(1) == len(capture_dataset) - 5 and source.counters.rejected == 0
 
 
 @pytest.mark.slow

@@ -10,8 +10,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -22,7 +20,7 @@ import numpy as np
 import pytest
 from aiohttp import web
 from aiortc import RTCPeerConnection
-from live_helpers import free_port, read_status, wait_for
+from live_helpers import PhoneThread, free_port, read_status, wait_for
 
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.errors import DataError
@@ -161,22 +159,6 @@ def test_the_decoder_skips_and_counts_all_red_and_odd_frames(caplog: pytest.LogC
 def test_working_size_for_the_cpu_is_halved() -> None:
     assert halved_to(512, 384, 128) == (128, 96)
     assert halved_to(512, 384, 0) == (512, 384)
-
-
-class PhoneThread:
-    """A FakePhone (or any aiohttp app) on its own event loop in a thread, as a separate device."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
-
-    def call(self, coro_fn: Callable[[], Any]) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro_fn(), self.loop).result(timeout=30)
-
-    def close(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(timeout=10)
 
 
 async def _receive(
@@ -391,9 +373,14 @@ def test_the_daemon_stops_cleanly_while_waiting_for_an_absent_phone(tmp_path: Pa
         sys.executable, "-m", "pipeline", "serve", "--record3d", f"http://127.0.0.1:{free_port()}",
         "--device", "cpu", "--output", str(tmp_path), "--quiet", "--set", "live.status_port=0",
     ]  # fmt: skip
-    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    time.sleep(4)
-    daemon.send_signal(signal.SIGINT)
-    output, _ = daemon.communicate(timeout=30)
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
+    wait_for(lambda: "cannot connect" in log_path.read_text(), 120, "a connection attempt", log_path)
+    daemon.send_signal(signal.SIGINT)  # once it runs (a slow start would otherwise end as a plain Ctrl-C)
+    daemon.wait(timeout=30)
+    output = log_path.read_text()
     assert daemon.returncode == 0, output
     assert "cannot connect" in output and "nothing to save" in output
+    (folder,) = tmp_path.glob("live_record3d_tiny-2*")  # a fresh, timestamped run folder; latest points at it
+    assert (tmp_path / "latest").resolve() == folder.resolve()

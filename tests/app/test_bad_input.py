@@ -1,0 +1,146 @@
+"""Ordinary mistakes on the command line and in the input: one line naming the file, key or
+port, exit code 2, no traceback."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT
+
+from pipeline.app.cli import main
+from pipeline.io.outputs.ply import write_ply
+from pipeline.render.types import Gaussians
+
+
+def _last_error(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return err[-1]
+
+
+def _without_root_override(argv: list[str]) -> subprocess.CompletedProcess[str]:
+    """The command in a process that file permissions apply to: as root (who may read and write
+    anything), without the capabilities that override them."""
+    prefix: list[str] = []
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root without setpriv: permissions cannot be made to apply")
+        prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search", "--"]
+    return subprocess.run(
+        [*prefix, sys.executable, "-m", "pipeline", *argv], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+
+
+def test_an_unreadable_dataset_folder_is_named(replica_seq: Path, tmp_path: Path) -> None:
+    dataset = tmp_path / "room"
+    shutil.copytree(replica_seq, dataset)
+    dataset.chmod(0)
+    try:
+        done = _without_root_override(["run", str(dataset), "--output", str(tmp_path / "out"), "--quiet"])
+    finally:
+        dataset.chmod(0o755)
+    assert done.returncode == 2, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last == f"gsplatam: error: cannot read the dataset folder {dataset}: permission denied"
+
+
+def test_an_unwritable_output_folder_is_named(replica_seq: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir(mode=0o555)
+    try:
+        done = _without_root_override(["run", str(replica_seq), "--output", str(out), "--quiet"])
+    finally:
+        out.chmod(0o755)
+    assert done.returncode == 2, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last == f"gsplatam: error: cannot write into the output folder {out}: permission denied"
+
+
+def test_synth_into_a_file_is_refused(tmp_path: Path, capsys) -> None:
+    target = tmp_path / "afile"
+    target.write_text("x")
+    assert main(["synth", str(target), "--frames", "2", "--width", "16", "--height", "12", "--quiet"]) == 2
+    assert f"{target} is a file" in _last_error(capsys)
+
+
+def test_the_fake_phones_port_taken_is_named(replica_seq: Path, capsys) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["fake-record3d", "--dataset", str(replica_seq), "--port", str(port), "--quiet"]) == 2
+    assert f"cannot serve on 127.0.0.1:{port}" in _last_error(capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["serve", "--record3d", "ftp://192.168.1.20"], "the app serves http://, not ftp://"),
+        (["serve", "--record3d", "http://phone:99999"], "bad phone address 'http://phone:99999'"),
+        (["run", "record3d:http://[::1"], "bad phone address"),
+        (["serve", "--nerfcapture", "--set", "live.status_port=70000"], "live.status_port must be a port"),
+        (["serve", "--nerfcapture", "--set", "live.status_port=-1"], "live.status_port must be a port"),
+        (["run", "--viewer", "--viewer-port", "0"], "viewer.port must be a port"),
+        (["view", "x.ply", "--viewer-port", "70000"], "--viewer-port 70000 is not a port"),
+        (["fake-record3d", "--port", "-3"], "--port -3 is not a port"),
+    ],
+)
+def test_bad_addresses_and_ports_are_named(argv: list[str], message: str, tmp_path: Path, capsys) -> None:
+    assert main(argv + (["--output", str(tmp_path)] if argv[0] in ("run", "serve") else [])) == 2
+    assert message in _last_error(capsys)
+
+
+def _ply(path: Path) -> Path:
+    """A valid map of 20 Gaussians."""
+    n = 20
+    write_ply(path, Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n, 1), torch.zeros(n), torch.rand(n, 3)))
+    return path
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda raw: raw[:-100], "is truncated: its header announces 20 Gaussians"),
+        (lambda raw: raw.replace(b"element vertex 20", b"element vertex many"), "malformed header line"),
+        (lambda raw: raw.replace(b"element vertex 20\n", b""), "no 'element vertex' line"),
+        (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "malformed header"),
+        (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "only binary little-endian"),
+    ],
+)
+def test_a_truncated_or_malformed_ply_is_named_by_view(damage, message: str, tmp_path: Path, capsys) -> None:
+    path = _ply(tmp_path / "map.ply")
+    path.write_bytes(damage(path.read_bytes()))
+    assert main(["view", str(path)]) == 2
+    line = _last_error(capsys)
+    assert message in line and str(path) in line
+
+
+def test_a_preset_beside_a_config_naming_another_says_which_wins(tmp_path: Path, caplog) -> None:
+    from pipeline.app.cli import _config_from, build_parser
+
+    config_file = tmp_path / "c.toml"
+    config_file.write_text('preset = "small"\n')
+    args = build_parser().parse_args(["run", "--preset", "tiny", "--config", str(config_file)])
+    with caplog.at_level("WARNING", "gsplatam"):
+        config = _config_from(args)
+    assert config.preset == "small"
+    assert f"--preset tiny is overridden by {config_file}, which names preset 'small'" in caplog.text
+
+
+def test_a_first_frame_without_depth_is_refused_with_its_file(replica_seq: Path, tmp_path: Path, capsys) -> None:
+    dataset = tmp_path / "room"
+    shutil.copytree(replica_seq, dataset)
+    cv2.imwrite(str(dataset / "results" / "depth000000.png"), np.zeros((48, 64), np.uint16))
+    assert main(["run", str(dataset), "--output", str(tmp_path / "out"), "--quiet"]) == 2
+    line = _last_error(capsys)
+    assert "failed on frame 0" in line and "depth000000.png holds no valid depth" in line

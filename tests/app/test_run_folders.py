@@ -1,0 +1,124 @@
+"""Run folders: a fresh one per run, never an earlier run's; one writer at a time."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+from pipeline.app.cli import main
+from pipeline.app.run_folders import LATEST, new_run_folder
+from pipeline.errors import UserError
+from pipeline.io.outputs.run_lock import RunFolderBusy, RunLock
+
+
+def test_runs_without_a_name_get_fresh_folders_and_latest_points_at_the_newest(tmp_path: Path) -> None:
+    with new_run_folder(tmp_path, "room_tiny") as first:
+        (first / "metrics.json").write_text("{}")
+    with new_run_folder(tmp_path, "room_tiny") as second:
+        pass
+    assert first != second and first.name.startswith("room_tiny-") and second.name.startswith(first.name[:18])
+    assert (first / "metrics.json").read_text() == "{}"  # the earlier run is untouched
+    assert (tmp_path / LATEST).resolve() == second.resolve()
+
+
+def test_latest_is_a_text_file_where_symlinks_fail(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_symlinks(*args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        raise OSError("symlinks not supported")
+
+    monkeypatch.setattr(os, "symlink", no_symlinks)
+    with new_run_folder(tmp_path, "room_tiny") as folder:
+        pass
+    assert (tmp_path / LATEST).read_text().strip() == folder.name
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
+
+
+def test_a_named_folder_with_an_earlier_run_is_refused_unless_overwrite(tmp_path: Path) -> None:
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    for name in ("metrics.json", "map.ply", "trace.json", "notes.txt"):
+        (folder / name).write_text("earlier")
+    with pytest.raises(UserError, match=r"mine holds an earlier run \(metrics.json, map.ply, trace.json\).*--resume"):
+        with new_run_folder(tmp_path, "room_tiny", "mine"):
+            pass
+    assert (folder / "metrics.json").read_text() == "earlier"
+    with new_run_folder(tmp_path, "room_tiny", "mine", overwrite=True) as same:
+        assert same == folder
+        assert sorted(p.name for p in folder.iterdir()) == [".lock", "notes.txt"]  # the user's own file stays
+
+
+def test_the_pointer_name_is_refused_as_a_run_name(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="'latest' names the pointer"):
+        with new_run_folder(tmp_path, "room_tiny", LATEST):
+            pass
+
+
+def test_the_cli_refuses_to_run_into_an_earlier_run(replica_seq: Path, tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "out" / "r"
+    folder.mkdir(parents=True)
+    (folder / "checkpoint.safetensors").write_bytes(b"an earlier run's")
+    code = main(["run", str(replica_seq), "--output", str(tmp_path / "out"), "--name", "r", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "holds an earlier run (checkpoint.safetensors)" in err[-1] and "--overwrite" in err[-1]
+    assert (folder / "checkpoint.safetensors").read_bytes() == b"an earlier run's"
+    assert main(["run", "--resume", str(folder), "--overwrite", "--quiet"]) == 2
+
+
+def _hold_lock(folder: Path) -> subprocess.Popen[str]:
+    """Another process holding `folder`'s lock until its stdin closes."""
+    script = (
+        "import sys; from pathlib import Path; from pipeline.io.outputs.run_lock import RunLock\n"
+        f"with RunLock(Path({str(folder)!r})):\n    print('locked', flush=True); sys.stdin.read()\n"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def test_a_second_process_is_refused_a_locked_folder_and_told_the_holder(tmp_path: Path) -> None:
+    folder = tmp_path / "run"
+    folder.mkdir()
+    holder = _hold_lock(folder)
+    try:
+        with pytest.raises(
+            RunFolderBusy, match=rf"{folder} is being written by another gsplatam process \(pid {holder.pid}\)"
+        ):
+            with RunLock(folder):
+                pass
+    finally:
+        holder.kill()  # a holder that dies without cleaning up: the kernel frees the lock
+        holder.wait()
+    with RunLock(folder):  # the lock file left behind blocks nobody
+        assert (folder / ".lock").read_text().strip() == str(os.getpid())
+
+
+@pytest.mark.parametrize("command", ["run", "serve"])
+def test_run_and_serve_refuse_a_folder_another_process_writes(
+    command: str, replica_seq: Path, tmp_path: Path, capsys
+) -> None:
+    folder = tmp_path / "out" / "shared"
+    folder.mkdir(parents=True)
+    holder = _hold_lock(folder)
+    source = [str(replica_seq)] if command == "run" else ["--record3d", "http://127.0.0.1:9"]
+    try:
+        code = main([command, *source, "--output", str(tmp_path / "out"), "--name", "shared", "--quiet"])
+    finally:
+        holder.kill()
+        holder.wait()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and f"pid {holder.pid}" in err[-1] and str(folder) in err[-1]
+    assert sorted(p.name for p in folder.iterdir()) == [".lock"]  # nothing written
+
+
+def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
+    output = tmp_path / "afile"
+    output.write_text("x")
+    assert main(["run", "--output", str(output), "--quiet"]) == 2
+    assert f"the output folder {output} is a file, not a folder" in capsys.readouterr().err.strip().splitlines()[-1]
