@@ -195,10 +195,13 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
 
 
 def execute(graph: Graph, loader: str) -> RuntimeReport:
-    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly."""
+    """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly.
+    Signals reach the main thread only: run in another thread (a Ray actor's method), the graph
+    is stopped by one of its services instead (app/remote_control.py)."""
+    signals = (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
     if loader == "sync":
         stop = threading.Event()
-        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in signals}
         try:
             return run_sync(graph, stop)
         finally:
@@ -208,12 +211,12 @@ def execute(graph: Graph, loader: str) -> RuntimeReport:
     async def main() -> RuntimeReport:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in signals:
             loop.add_signal_handler(sig, stop.set)
         try:
             return await run_graph(graph, stop)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in signals:
                 loop.remove_signal_handler(sig)
 
     if HAVE_UVLOOP:

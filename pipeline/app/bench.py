@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,8 +18,9 @@ import torch
 from pipeline.app.report import WARMUP_FRAMES, versions
 from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config, with_value
-from pipeline.devices import describe, resolve_device
+from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
+from pipeline.io.outputs.atomic import atomic_write_text
 
 log = logging.getLogger("gsplatam")
 
@@ -46,9 +48,20 @@ SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class Cell:
-    sequence: str  # a dataset folder, or a name in SYNTHETIC_SEQUENCES
+    sequence: str  # a dataset folder (absolute: every node of a cluster reads the same path), or a name in SYNTHETIC_SEQUENCES
     preset: str
     variant: str = "default"
+
+    @property
+    def name(self) -> str:
+        """Its run folder's name under the runs folder."""
+        return f"{Path(self.sequence).name}_{self.preset}_{self.variant}"
+
+
+def cells_of(sequences: list[str], presets: list[str], variants: list[str]) -> list[Cell]:
+    """The matrix in its order: sequences, then presets, then variants."""
+    folders = [s if s in SYNTHETIC_SEQUENCES else str(Path(s).resolve()) for s in sequences]
+    return [Cell(s, p, v) for s in folders for p in presets for v in variants]
 
 
 def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
@@ -58,6 +71,33 @@ def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: s
         config = with_value(config, "dataset.path", cell.sequence)
     config = with_value(config, "run.output", str(output))
     return with_value(config, "run.name", run_name)
+
+
+def run_cell(cell: Cell, base_overrides: list[str], runs: Path, progress: bool, profile: bool) -> dict[str, Any]:
+    """Run one cell here (this process, or a Ray worker) -> its row, with where it ran and its
+    wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
+    start = time.perf_counter()
+    try:
+        config = cell_config(cell, base_overrides, runs, cell.name)
+        metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
+        if metrics is None:
+            raise UserError("interrupted before its first frame")
+        row = row_of(cell, metrics)
+    except Exception as exc:  # any failure of this cell, reported in its row
+        log.error("bench: %s failed: %s", cell.name, exc)
+        row = failed_row(cell, exc)
+    return {**row, **placement(), "wall_s": time.perf_counter() - start}
+
+
+def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
+    """The row of a cell that did not finish: its name and the first line of its error."""
+    message = str(error).strip().splitlines()
+    return {
+        "sequence": Path(cell.sequence).name,
+        "preset": cell.preset,
+        "variant": cell.variant,
+        "error": f"{type(error).__name__}: {message[0] if message else ''}",
+    }
 
 
 def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
@@ -86,41 +126,42 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
         "depth_l1_cm": render.get("depth_l1_cm"),
         "lost_frames": metrics["lost_frames"],
         "warmup_frames_excluded": t["warmup_frames_excluded"],
+        "error": None,
     }
 
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
     """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
-    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default"}
+    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default" and not r["error"]}
     for row in rows:
         base = defaults.get((row["sequence"], row["preset"]))
         for key in ("total_ms", "ate_rmse_cm", "psnr_db"):
-            ok = base is not None and row[key] is not None and base[key]
-            row[f"{key}_ratio"] = row[key] / base[key] if base is not None and ok else None
+            value = row.get(key)
+            ok = base is not None and value is not None and base[key]
+            row[f"{key}_ratio"] = value / base[key] if base is not None and ok else None
 
 
 def run_matrix(
-    sequences: list[str],
-    presets: list[str],
-    variants: list[str],
-    base_overrides: list[str],
-    runs: Path,
-    progress: bool,
-    profile: bool = False,
+    cells: list[Cell], base_overrides: list[str], runs: Path, progress: bool, profile: bool = False
 ) -> dict[str, Any]:
-    """Run every cell; run folders (and the generated synthetic room) go under `runs`."""
+    """Run every cell here, one after the other; run folders (and the generated synthetic room) go under `runs`."""
+    start = time.perf_counter()
     rows = []
-    for sequence in sequences:
-        for preset in presets:
-            for variant in variants:
-                cell = Cell(sequence, preset, variant)
-                name = f"{Path(sequence).name}_{preset}_{variant}"
-                log.info("bench: %s", name)
-                config = cell_config(cell, base_overrides, runs, name)
-                metrics = run_slam(config, profile_trace=profile, progress=progress).metrics
-                if metrics is None:
-                    raise UserError("benchmark interrupted before its first frame")
-                rows.append(row_of(cell, metrics))
+    for done, cell in enumerate(cells):
+        log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
+        rows.append(run_cell(cell, base_overrides, runs, progress, profile))
+    return report_of(rows, base_overrides, profile, time.perf_counter() - start, cluster=None)
+
+
+def report_of(
+    rows: list[dict[str, Any]],
+    base_overrides: list[str],
+    profile: bool,
+    wall_s: float,
+    cluster: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The report of a whole matrix (rows in matrix order): the same keys for a local run and one
+    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local)."""
     add_ratios(rows)
     device = resolve_device("auto")
     return {
@@ -129,6 +170,8 @@ def run_matrix(
         "versions": versions(),
         "overrides": base_overrides,
         "profiled": profile,
+        "cluster": cluster,
+        "wall_s": wall_s,
         "rows": rows,
     }
 
@@ -156,7 +199,15 @@ COLUMNS = [
 ]  # fmt: skip
 
 
+PLACEMENT_COLUMNS = [("node", "{}"), ("gpu", "{}")]  # shown for a run on a cluster
+
+
 def markdown(report: dict[str, Any]) -> str:
+    rows, cluster = report["rows"], report["cluster"]
+    columns = COLUMNS + (PLACEMENT_COLUMNS if cluster else []) + ([("error", "{}")] if _failed(rows) else [])
+    where = "this machine, one cell after the other"
+    if cluster:
+        where = f"Ray cluster {cluster['address']} ({len(cluster['nodes'])} nodes), {cluster['declared']} per cell"
     lines = [
         f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
         f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame; the first "
@@ -166,21 +217,27 @@ def markdown(report: dict[str, Any]) -> str:
             if report["profiled"]
             else ""
         ),
+        f"Ran on {where}: {len(rows)} cells in {report['wall_s']:.1f} s"
+        + (f", {len(_failed(rows))} failed." if _failed(rows) else "."),
         "",
-        "| " + " | ".join(name for name, _ in COLUMNS) + " |",
-        "|" + "---|" * len(COLUMNS),
+        "| " + " | ".join(name for name, _ in columns) + " |",
+        "|" + "---|" * len(columns),
     ]
-    for row in report["rows"]:
-        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in COLUMNS]
-        lines.append("| " + " | ".join(cells) + " |")
+    for row in rows:
+        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in columns]
+        lines.append("| " + " | ".join(cell.replace("|", "/") for cell in cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _failed(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [row for row in rows if row["error"]]
 
 
 def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
     json_path, md_path = out / f"{stem}.json", out / f"{stem}.md"
-    json_path.write_text(json.dumps(report, indent=2) + "\n")
-    md_path.write_text(markdown(report))
+    atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
+    atomic_write_text(md_path, markdown(report))
     return json_path, md_path
 
 

@@ -14,7 +14,6 @@ from pipeline.errors import StageFailure, UserError
 if TYPE_CHECKING:  # the commands import what they need when they run: --help stays fast
     from pipeline.config import Config
     from pipeline.io.datasets.base import Dataset
-    from pipeline.source import Source
 
 log = logging.getLogger("gsplatam")
 
@@ -89,14 +88,31 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
+    bench.add_argument(
+        "--ray", nargs="?", const="", metavar="ADDRESS",
+        help="each cell a Ray task, on the cluster at ADDRESS (host:port, or auto) or, without one, a local cluster",
+    )  # fmt: skip
+    bench.add_argument(
+        "--gpus-per-cell", type=float, default=1.0, help="with --ray: GPUs each cell declares (fractions share one)"
+    )
     bench.add_argument("--quiet", action="store_true")
     serve = sub.add_parser("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
-    live = serve.add_mutually_exclusive_group(required=True)
-    live.add_argument("--record3d", metavar="URL", help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20")
-    live.add_argument(
-        "--nerfcapture", action="store_true",
-        help="NeRFCapture app over DDS (domain 0, topic Frames); its pose per --set live.device_pose=...",
+    serve.add_argument(
+        "--record3d", metavar="URL", action="append", default=[],
+        help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20 (repeatable with --ray)",
     )  # fmt: skip
+    serve.add_argument(
+        "--nerfcapture", metavar="DOMAIN", nargs="?", const="", action="append", default=[],
+        help="NeRFCapture app over DDS (topic Frames, domain live.dds_domain: 0, or DOMAIN; repeatable with --ray, "
+        "a domain each); its pose per --set live.device_pose=...",
+    )  # fmt: skip
+    serve.add_argument(
+        "--ray", nargs="?", const="", metavar="ADDRESS",
+        help="every source a session on the Ray cluster at ADDRESS (host:port, or auto) or, without one, a local cluster",
+    )  # fmt: skip
+    serve.add_argument(
+        "--gpus-per-session", type=float, default=1.0, help="with --ray: GPUs each session declares (fractions share one)"
+    )
     _add_config_options(serve)
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
     _add_viewer_options(serve)
@@ -195,7 +211,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from pipeline.app.bench import ABLATIONS, default_variants, markdown, run_matrix, write_report
+    from pipeline.app.bench import ABLATIONS, cells_of, default_variants, markdown, run_matrix, write_report
     from pipeline.config import load_config
 
     variants = args.variants.split(",") if args.variants else default_variants(args.ablations)
@@ -205,43 +221,37 @@ def cmd_bench(args: argparse.Namespace) -> int:
     presets = args.presets.split(",")
     for preset in presets:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
-    out = Path(args.out)
-    report = run_matrix(
-        args.sequences or ["synthetic"],
-        presets,
-        variants,
-        args.overrides,
-        Path(args.runs),
-        not args.quiet,
-        args.profile,
-    )
-    json_path, md_path = write_report(report, out, args.stem)
+    cells = cells_of(args.sequences or ["synthetic"], presets, variants)
+    if args.ray is None:
+        report = run_matrix(cells, args.overrides, Path(args.runs), not args.quiet, args.profile)
+    else:
+        _require_ray()
+        from pipeline.app.ray_bench import run_matrix_on_ray
+
+        report = run_matrix_on_ray(
+            cells, args.overrides, Path(args.runs), args.ray or None, args.gpus_per_cell, args.profile
+        )
+    json_path, md_path = write_report(report, Path(args.out), args.stem)
     print(markdown(report))
     print(f"wrote {json_path} and {md_path}")
-    return 0
+    failed = sum(bool(row["error"]) for row in report["rows"])
+    if failed:
+        print(f"{failed} of {len(cells)} cells failed (their error is in the table)", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _require_ray() -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        raise UserError("--ray needs Ray: pip install 'gsplatam[cluster]'")
 
 
 LIVE_SCHEMES = ("record3d:", "nerfcapture:")  # `run record3d:http://PHONE` / `run nerfcapture:`: no recording
 
 
-def live_source(spec: str, config: Config) -> Source:
-    """`record3d:URL` or `nerfcapture:` -> the live source."""
-    from pipeline.devices import live_max_width, resolve_device
-
-    if spec.startswith("nerfcapture:"):
-        from pipeline.io.live.nerfcapture import NeRFCaptureSource
-
-        return NeRFCaptureSource(config.live.device_pose, config.live.dds_domain)
-    from pipeline.io.live.record3d import Record3DSource
-
-    url = spec.removeprefix("record3d:")
-    if not url:
-        raise UserError("record3d: needs the phone's address, e.g. record3d:http://192.168.1.20")
-    size = (config.live.width, config.live.height) if config.live.width else None
-    return Record3DSource(url, config.live, size, live_max_width(resolve_device(config.run.device)))
-
-
 def _serve_live(spec: str, config: Config, progress: bool) -> int:
+    from pipeline.app.live_sources import live_source
     from pipeline.app.serve import serve
 
     source = live_source(spec, config)
@@ -253,8 +263,18 @@ def _serve_live(spec: str, config: Config, progress: bool) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    spec = "nerfcapture:" if args.nerfcapture else f"record3d:{args.record3d}"
-    return _serve_live(spec, _config_from(args), progress=not args.quiet)
+    specs = [f"record3d:{url}" for url in args.record3d] + [f"nerfcapture:{domain}" for domain in args.nerfcapture]
+    if not specs:
+        raise UserError("serve needs a source: --record3d URL or --nerfcapture")
+    config = _config_from(args)
+    if args.ray is not None:
+        _require_ray()
+        from pipeline.app.ray_serve import serve_on_ray
+
+        return serve_on_ray(specs, config, args.ray or None, args.gpus_per_session)
+    if len(specs) > 1:
+        raise UserError("several sources need --ray (each a session of its own)")
+    return _serve_live(specs[0], config, progress=not args.quiet)
 
 
 # The default scene of the fake phone: 256x192 is the iPhone LiDAR's depth resolution; 10 s at 30 fps.

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.app.remote_control import RemoteControl
 from pipeline.app.report import timing_summary, versions
 from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.config import Config
@@ -50,6 +51,13 @@ def live_ate_cm(results: list[FrameResult]) -> float | None:
     return 100 * absolute_trajectory_error(estimated, reference).rmse_m
 
 
+def frame_age_s(source: Source, last: FrameResult | None) -> float | None:
+    """How far the newest processed frame is behind the newest frame received, in the stream's
+    own seconds: at a frame boundary, about the time from a frame's arrival to its result."""
+    newest = source.counters.latest_s
+    return None if last is None or newest is None else max(0.0, newest - last.timestamp)
+
+
 def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
     source, sink = session.source, session.sink
@@ -71,23 +79,27 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "lost_frames": sink.lost_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
+            "frame_age_s": frame_age_s(source, last),
             "ate_rmse_cm": live_ate_cm(results),
         }
 
     return read
 
 
-def serve(config: Config, source: Source, progress: bool = True) -> ServeResult:
-    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the end."""
+def serve(config: Config, source: Source, progress: bool = True, control: RemoteControl | None = None) -> ServeResult:
+    """Reconstruct from `source` until it ends or SIGINT/SIGTERM (or `control` stops it, from
+    another thread); save periodically and at the end."""
     device = resolve_device(config.run.device)
     config = complete_config(config, device, "tum")  # a phone's depth is a real sensor's, as TUM's
     folder = Path(config.run.output) / (config.run.name or f"live_{source.name}_{config.preset}")
     session = open_session(config, source, folder, progress=progress, save_every_s=config.live.save_every_s)
 
     def add_status(graph: Graph) -> None:
+        read = status_reader(session, graph)
         if config.live.status_port:
-            read = status_reader(session, graph)
             graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
+        if control is not None:
+            graph.services.append(control.service(read))
 
     report = execute_session(session, on_graph=add_status)
     slam, sink = session.slam, session.sink

@@ -230,7 +230,8 @@ class Record3DSource:
     def _packet(self, image: av.VideoFrame, metadata: dict[str, Any]) -> Record3DPacket:
         index = self.counters.received
         self.counters.received += 1
-        return Record3DPacket(index, time.perf_counter() - self._clock0, image, metadata)
+        self.counters.latest_s = time.perf_counter() - self._clock0
+        return Record3DPacket(index, self.counters.latest_s, image, metadata)
 
     def decode(self, packet: Record3DPacket) -> Frame | None:
         """-> the frame at the working size, or None for an unusable one (counted as skipped)."""
