@@ -17,7 +17,7 @@ from typing import Any
 import ray
 
 from pipeline.app.bench import Cell, failed_row, report_of, run_cell
-from pipeline.app.ray_cluster import cause_of, connected, declared_resources, summary
+from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources, summary
 
 log = logging.getLogger("gsplatam")
 
@@ -37,6 +37,7 @@ def run_matrix_on_ray(
 ) -> dict[str, Any]:
     """Run every cell as a Ray task -> the same report as `run_matrix`, rows in matrix order, each
     with the node and GPU it ran on; run folders go under `runs` on the node of each cell."""
+    check_gpu_share(gpus_per_cell, "cell")
     with connected(address) as cluster:
         declared = declared_resources(cluster, gpus_per_cell, "cell")
         task = _cell_task.options(**declared)

@@ -69,12 +69,15 @@ def _describe() -> Cluster:
     return Cluster(ray.get_runtime_context().gcs_address, nodes, sum(n["gpus"] for n in nodes))
 
 
-def declared_resources(cluster: Cluster, gpus: float, what: str) -> dict[str, float]:
-    """The Ray resources of one cell or session (`what`, for messages): `gpus` GPUs (a fraction
-    below 1 shares a GPU, whole numbers above 1 take several) and one CPU. On a cluster without
-    GPUs it declares the CPU alone, and says so."""
+def check_gpu_share(gpus: float, what: str) -> None:
+    """A GPU share Ray can schedule: a fraction up to 1 (several share a GPU) or a whole number."""
     if gpus < 0 or (gpus > 1 and not float(gpus).is_integer()):
         raise UserError(f"GPUs per {what} must be a fraction up to 1 or a whole number, not {gpus:g}")
+
+
+def declared_resources(cluster: Cluster, gpus: float, what: str) -> dict[str, float]:
+    """The Ray resources of one cell or session (`what`, for messages): `gpus` GPUs (checked by
+    `check_gpu_share`) and one CPU. On a cluster without GPUs it declares the CPU alone, and says so."""
     if cluster.gpus == 0:
         log.warning("ray: the cluster has no GPU: each %s declares %d CPU and no GPU", what, CPUS_PER_WORKER)
         return {"num_cpus": CPUS_PER_WORKER, "num_gpus": 0}

@@ -20,8 +20,8 @@ from typing import Any
 
 import ray
 
-from pipeline.app.live_sources import live_source, source_label
-from pipeline.app.ray_cluster import cause_of, connected, declared_resources
+from pipeline.app.live_sources import live_source, nerfcapture_domain, source_label
+from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources
 from pipeline.app.remote_control import RemoteControl
 from pipeline.app.serve import serve
 from pipeline.config import Config, with_value
@@ -34,6 +34,7 @@ log = logging.getLogger("gsplatam")
 MAX_RESTARTS = 2  # a session whose actor died is started again this often, each time into a new run folder
 STATUS_EVERY_S = 1.0  # how often the driver asks each session for its status
 STATUS_TIMEOUT_S = 5.0
+RESTART_TIMEOUT_S = 120.0  # a restarting actor not back by then (no node with its GPU share free) has failed
 ACTOR_THREADS = 4  # the session's run, and the driver's status and stop calls beside it
 NAMESPACE = "gsplatam"  # the actors are named gsplatam:<session> in it (`ray list actors`)
 
@@ -103,18 +104,35 @@ class RemoteSession:
                 self.result = await self.actor.run.remote(attempt)
                 self.state = "finished"
                 return
-            except ray.exceptions.RayActorError as exc:
+            except ray.exceptions.ActorUnavailableError as exc:  # Ray is restarting the actor
                 self.error = _first_line(exc)
                 if stopping.is_set() or attempt == MAX_RESTARTS:
                     break
                 self.restarts += 1
                 self.state = "restarting"
                 log.warning("ray: session %s lost its actor (%s); starting it again", self.name, self.error)
-            except ray.exceptions.RayError as exc:  # the session itself failed: bad input, a failing stage
+                if not await self._restarted():
+                    break
+            except ray.exceptions.RayError as exc:  # the actor is gone for good, or the session failed
                 self.error = _first_line(exc)
                 break
         self.state = "failed"
         log.error("ray: session %s failed: %s", self.name, self.error)
+
+    async def _restarted(self) -> bool:
+        """Wait until Ray has the actor back (its calls fail fast while it restarts) -> False when
+        it is gone for good or not back within RESTART_TIMEOUT_S."""
+        deadline = asyncio.get_running_loop().time() + RESTART_TIMEOUT_S
+        while asyncio.get_running_loop().time() < deadline:
+            try:
+                await self.actor.status.remote()
+                return True
+            except ray.exceptions.ActorUnavailableError:
+                await asyncio.sleep(STATUS_EVERY_S)
+            except ray.exceptions.RayError as exc:
+                self.error = _first_line(exc)
+                return False
+        return False
 
     async def watch(self) -> None:
         """Keep `status` fresh (a slow or restarting actor keeps its last answer)."""
@@ -144,6 +162,8 @@ def session_configs(specs: list[str], config: Config) -> list[tuple[str, Config]
     output = str(Path(config.run.output).resolve())
     named: list[tuple[str, Config]] = []
     for index, spec in enumerate(specs):
+        if spec.startswith("nerfcapture:"):
+            nerfcapture_domain(spec, config)  # a bad domain is reported here, before any actor starts
         name = f"{prefix}_{source_label(spec)}"
         if any(name == other for other, _ in named):
             name = f"{name}_{index}"
@@ -158,6 +178,7 @@ def serve_on_ray(specs: list[str], config: Config, address: str | None, gpus_per
     if config.viewer.enabled:
         raise UserError("--viewer is not available with --ray")
     named = session_configs(specs, config)
+    check_gpu_share(gpus_per_session, "session")
     with connected(address) as cluster:
         declared = declared_resources(cluster, gpus_per_session, "session")
         sessions = [
