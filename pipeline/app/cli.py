@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
+from pipeline.app.logs import configure_logging
 from pipeline.errors import StageFailure, UserError
 
 if TYPE_CHECKING:  # the commands import what they need when they run: --help stays fast
@@ -111,7 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="every source a session on the Ray cluster at ADDRESS (host:port, or auto) or, without one, a local cluster",
     )  # fmt: skip
     serve.add_argument(
-        "--gpus-per-session", type=float, default=1.0, help="with --ray: GPUs each session declares (fractions share one)"
+        "--gpus-per-session",
+        type=float,
+        default=1.0,
+        help="with --ray: GPUs each session declares (fractions share one)",
     )
     _add_config_options(serve)
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>)")
@@ -384,9 +388,7 @@ def _terminate_as_interrupt(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
-    for chatty in ("aioice", "aiortc", "websockets"):  # per-candidate ICE and per-connection logs at INFO
-        logging.getLogger(chatty).setLevel(logging.WARNING)
+    configure_logging()
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     args = build_parser().parse_args(argv)

@@ -21,6 +21,7 @@ from typing import Any
 import ray
 
 from pipeline.app.live_sources import live_source, nerfcapture_domain, source_label
+from pipeline.app.logs import configure_logging
 from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources
 from pipeline.app.remote_control import RemoteControl
 from pipeline.app.serve import serve
@@ -44,7 +45,7 @@ class LiveSession:
     for the whole session while `status` and `stop` answer in the others."""
 
     def __init__(self, name: str, spec: str, config: Config) -> None:
-        logging.basicConfig(level=logging.INFO, format=f"gsplatam [{name}]: %(message)s")
+        configure_logging(f"gsplatam [{name}]")
         self.name, self.spec, self.config = name, spec, config
         self.control = RemoteControl()
         self.folder: str | None = None
@@ -58,7 +59,11 @@ class LiveSession:
         self.folder = str(Path(config.run.output) / config.run.name)
         result = serve(config, live_source(self.spec, config), progress=False, control=self.control)
         metrics = result.metrics or {}
-        return {"folder": str(result.folder.path), "frames": metrics.get("frames", 0), "gaussians": metrics.get("gaussians", 0)}
+        return {
+            "folder": str(result.folder.path),
+            "frames": metrics.get("frames", 0),
+            "gaussians": metrics.get("gaussians", 0),
+        }
 
     def status(self) -> dict[str, Any]:
         """Where the session runs, its run folder and its live status (None until its graph runs)."""
@@ -79,7 +84,7 @@ class RemoteSession:
     name: str
     spec: str
     actor: Any  # the LiveSessionActor handle
-    state: str = "starting"  # starting, running, restarting, stopping, finished, failed
+    state: str = "starting"  # starting, running, restarting, stopping, then finished, stopped or failed
     restarts: int = 0
     error: str | None = None
     status: dict[str, Any] | None = None  # the actor's last answer to `status`
@@ -99,6 +104,9 @@ class RemoteSession:
     async def follow(self, stopping: asyncio.Event) -> None:
         """Run the session to its end; start it again when its actor died, unless stopping."""
         for attempt in range(MAX_RESTARTS + 1):
+            if stopping.is_set() and attempt:  # stopped while restarting: nothing more to save
+                self.state = "stopped"
+                return
             self.state = "running" if not stopping.is_set() else "stopping"
             try:
                 self.result = await self.actor.run.remote(attempt)
@@ -144,7 +152,8 @@ class RemoteSession:
             await asyncio.sleep(STATUS_EVERY_S)
 
     def request_stop(self) -> None:
-        if self.state in ("starting", "running", "restarting"):
+        """Ask a running session to stop (a restarting one is not started again: `follow`)."""
+        if self.state in ("starting", "running"):
             self.state = "stopping"
             self.actor.stop.remote()
 
