@@ -7,6 +7,7 @@ Ray (the optional extra `cluster`) is imported only by the commands given `--ray
 from __future__ import annotations
 
 import logging
+import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -43,7 +44,8 @@ def connected(address: str | None) -> Iterator[Cluster]:
             if address:
                 ray.init(address=address, logging_level=logging.WARNING)
             else:
-                ray.init(include_dashboard=False, logging_level=logging.WARNING)
+                with _interrupts_ignored_by_children():
+                    ray.init(include_dashboard=False, logging_level=logging.WARNING)
         except (ConnectionError, ValueError) as exc:
             raise UserError(f"cannot connect to the Ray cluster at {address}: {exc}") from exc
     try:
@@ -53,6 +55,18 @@ def connected(address: str | None) -> Iterator[Cluster]:
     finally:
         if owned:
             ray.shutdown()
+
+
+@contextmanager
+def _interrupts_ignored_by_children() -> Iterator[None]:
+    """Start processes that ignore SIGINT (they inherit it). A terminal's Ctrl-C reaches the whole
+    process group, which holds a local cluster's own servers: it must stop the sessions through
+    the driver, not break the cluster under them."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _describe() -> Cluster:

@@ -15,6 +15,7 @@ import logging
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +78,16 @@ class LiveSession:
 LiveSessionActor = ray.remote(max_restarts=MAX_RESTARTS)(LiveSession)
 
 
+class SessionState(StrEnum):
+    STARTING = "starting"
+    RUNNING = "running"
+    RESTARTING = "restarting"  # its actor died; Ray is starting it again
+    STOPPING = "stopping"
+    FINISHED = "finished"  # its source ended, or it stopped and saved
+    STOPPED = "stopped"  # stopped while restarting: its last run folder holds its last save
+    FAILED = "failed"
+
+
 @dataclass
 class RemoteSession:
     """The driver's view of one session."""
@@ -84,7 +95,7 @@ class RemoteSession:
     name: str
     spec: str
     actor: Any  # the LiveSessionActor handle
-    state: str = "starting"  # starting, running, restarting, stopping, then finished, stopped or failed
+    state: SessionState = SessionState.STARTING
     restarts: int = 0
     error: str | None = None
     status: dict[str, Any] | None = None  # the actor's last answer to `status`
@@ -105,26 +116,26 @@ class RemoteSession:
         """Run the session to its end; start it again when its actor died, unless stopping."""
         for attempt in range(MAX_RESTARTS + 1):
             if stopping.is_set() and attempt:  # stopped while restarting: nothing more to save
-                self.state = "stopped"
+                self.state = SessionState.STOPPED
                 return
-            self.state = "running" if not stopping.is_set() else "stopping"
+            self.state = SessionState.RUNNING if not stopping.is_set() else SessionState.STOPPING
             try:
                 self.result = await self.actor.run.remote(attempt)
-                self.state = "finished"
+                self.state = SessionState.FINISHED
                 return
             except ray.exceptions.ActorUnavailableError as exc:  # Ray is restarting the actor
                 self.error = _first_line(exc)
                 if stopping.is_set() or attempt == MAX_RESTARTS:
                     break
                 self.restarts += 1
-                self.state = "restarting"
+                self.state = SessionState.RESTARTING
                 log.warning("ray: session %s lost its actor (%s); starting it again", self.name, self.error)
                 if not await self._restarted():
                     break
             except ray.exceptions.RayError as exc:  # the actor is gone for good, or the session failed
                 self.error = _first_line(exc)
                 break
-        self.state = "failed"
+        self.state = SessionState.FAILED
         log.error("ray: session %s failed: %s", self.name, self.error)
 
     async def _restarted(self) -> bool:
@@ -153,8 +164,8 @@ class RemoteSession:
 
     def request_stop(self) -> None:
         """Ask a running session to stop (a restarting one is not started again: `follow`)."""
-        if self.state in ("starting", "running"):
-            self.state = "stopping"
+        if self.state in (SessionState.STARTING, SessionState.RUNNING):
+            self.state = SessionState.STOPPING
             self.actor.stop.remote()
 
 
@@ -198,9 +209,11 @@ def serve_on_ray(specs: list[str], config: Config, address: str | None, gpus_per
         asyncio.run(_drive(sessions, config))
     for session in sessions:
         result = session.result or {}
-        outcome = f"failed: {session.error}" if session.state == "failed" else f"{result.get('frames', 0)} frames"
+        outcome = (
+            f"failed: {session.error}" if session.state == SessionState.FAILED else f"{result.get('frames', 0)} frames"
+        )
         print(f"{session.name}: {outcome}, {result.get('gaussians', 0):,} Gaussians: {result.get('folder', '-')}/")
-    return 1 if any(s.state == "failed" for s in sessions) else 0
+    return 1 if any(s.state == SessionState.FAILED for s in sessions) else 0
 
 
 def _start_actor(name: str, spec: str, config: Config, declared: dict[str, float]) -> Any:
@@ -244,8 +257,8 @@ def board(sessions: list[RemoteSession]) -> Callable[[], dict[str, Any]]:
         states = [s.state for s in sessions]
         return {
             "sessions": [s.view() for s in sessions],
-            "running": states.count("running"),
-            "failed": states.count("failed"),
+            "running": states.count(SessionState.RUNNING),
+            "failed": states.count(SessionState.FAILED),
         }
 
     return read

@@ -164,3 +164,16 @@ def test_serve_on_ray_maps_two_phones_and_survives_a_killed_session(
     metrics = json.loads((folders[1] / "metrics.json").read_text())  # the survivor's final save
     assert metrics["frames"] > before and metrics["counters"]["connections"] >= 1
     assert f"session {sessions[first]['name']} lost its actor" in log_path.read_text()
+
+
+def test_a_local_cluster_is_started_deaf_to_a_terminal_interrupt() -> None:
+    """Ctrl-C reaches the whole process group, the local cluster's servers with it: they are
+    started ignoring SIGINT, so only the driver hears it and stops the sessions."""
+    from pipeline.app.ray_cluster import _interrupts_ignored_by_children
+
+    probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"]
+    with _interrupts_ignored_by_children():
+        inside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+    outside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+    assert (inside, outside) == ("True", "False")
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
