@@ -134,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     fake_nc.add_argument("--fps", type=float, default=10.0, help="frame rate")
     fake_nc.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a receiver")
     fake_nc.add_argument("--domain", type=int, default=0, help="DDS domain id (default: 0, the app's)")
+    fake_nc.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
     fake_nc.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
     fake_nc.add_argument("--quiet", action="store_true")
     view = sub.add_parser("view", help="web viewer for a saved map: a run folder or a 3DGS PLY")
@@ -335,7 +336,7 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
         len(dataset),
         args.fps,
     )
-    sent = publish_dataset(dataset, args.fps, args.wait, domain_id=args.domain)
+    sent = publish_dataset(dataset, args.fps, args.wait, domain_id=args.domain, loop=args.loop)
     print(f"published {sent} frames")
     return 0 if sent else 1
 
