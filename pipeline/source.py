@@ -25,7 +25,6 @@ class SourceCounters:
     connected: bool = False  # a live peer is streaming now (always False for files)
     connections: int = 0  # live connections made so far
     last_error: str = ""
-    latest_s: float | None = None  # timestamp of the newest frame received (seconds, the stream's clock)
 
 
 @runtime_checkable

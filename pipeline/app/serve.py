@@ -51,13 +51,6 @@ def live_ate_cm(results: list[FrameResult]) -> float | None:
     return 100 * absolute_trajectory_error(estimated, reference).rmse_m
 
 
-def frame_age_s(source: Source, last: FrameResult | None) -> float | None:
-    """How far the newest processed frame is behind the newest frame received, in the stream's
-    own seconds: at a frame boundary, about the time from a frame's arrival to its result."""
-    newest = source.counters.latest_s
-    return None if last is None or newest is None else max(0.0, newest - last.timestamp)
-
-
 def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]]:
     """The status endpoint's view of the daemon (read on the event loop; plain attribute reads)."""
     source, sink = session.source, session.sink
@@ -79,7 +72,6 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "lost_frames": sink.lost_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
             "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
-            "frame_age_s": frame_age_s(source, last),
             "ate_rmse_cm": live_ate_cm(results),
         }
 

@@ -189,8 +189,7 @@ class NeRFCaptureSource:
         if self._first_inverse is None:
             self._first_inverse = np.linalg.inv(c2w)
         index = self.counters.received - self.counters.skipped - self.counters.rejected - 1
-        self.counters.latest_s = float(sample.timestamp)
-        return NeRFCapturePacket(index, self.counters.latest_s, sample, self._first_inverse @ c2w)
+        return NeRFCapturePacket(index, float(sample.timestamp), sample, self._first_inverse @ c2w)
 
     def decode(self, packet: NeRFCapturePacket) -> Frame:
         s = packet.sample

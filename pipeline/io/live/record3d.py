@@ -230,8 +230,7 @@ class Record3DSource:
     def _packet(self, image: av.VideoFrame, metadata: dict[str, Any]) -> Record3DPacket:
         index = self.counters.received
         self.counters.received += 1
-        self.counters.latest_s = time.perf_counter() - self._clock0
-        return Record3DPacket(index, self.counters.latest_s, image, metadata)
+        return Record3DPacket(index, time.perf_counter() - self._clock0, image, metadata)
 
     def decode(self, packet: Record3DPacket) -> Frame | None:
         """-> the frame at the working size, or None for an unusable one (counted as skipped)."""
