@@ -228,6 +228,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
     cells = cells_of(args.sequences or ["synthetic"], presets, variants)
     if args.ray is None:
+        _check_folders(args.sequences)  # on a cluster only the nodes need to see them: a cell reports it
         report = run_matrix(cells, args.overrides, Path(args.runs), not args.quiet, args.profile)
     else:
         _require_ray()
@@ -243,6 +244,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if failed:
         print(f"{failed} of {len(cells)} cells failed (their error is in the table)", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _check_folders(sequences: list[str]) -> None:
+    from pipeline.app.bench import SYNTHETIC_SEQUENCES
+
+    missing = [s for s in sequences if s not in SYNTHETIC_SEQUENCES and not Path(s).is_dir()]
+    if missing:
+        raise UserError(f"dataset folder not found: {missing[0]}")
 
 
 def _require_ray() -> None:
