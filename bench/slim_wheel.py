@@ -14,21 +14,28 @@ from __future__ import annotations
 import argparse
 import zipfile
 from pathlib import Path
+from typing import IO
+
+from pipeline.io.outputs.atomic import atomic_write
 
 
 def slim(wheel: Path, out_dir: Path, drop: list[str]) -> Path:
     """Copy `wheel` into `out_dir` without the entries under the `drop` prefixes (and their RECORD lines)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / wheel.name
-    with zipfile.ZipFile(wheel) as source, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as slimmed:
-        for item in source.infolist():
-            if any(item.filename.startswith(prefix) for prefix in drop):
-                continue
-            data = source.read(item)
-            if item.filename.endswith(".dist-info/RECORD"):
-                lines = data.decode().splitlines()
-                data = ("\n".join(line for line in lines if not line.startswith(tuple(drop))) + "\n").encode()
-            slimmed.writestr(item, data)
+
+    def write(file: IO[bytes]) -> None:
+        with zipfile.ZipFile(wheel) as source, zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED) as slimmed:
+            for item in source.infolist():
+                if any(item.filename.startswith(prefix) for prefix in drop):
+                    continue
+                data = source.read(item)
+                if item.filename.endswith(".dist-info/RECORD"):
+                    lines = data.decode().splitlines()
+                    data = ("\n".join(line for line in lines if not line.startswith(tuple(drop))) + "\n").encode()
+                slimmed.writestr(item, data)
+
+    atomic_write(target, write)
     return target
 
 
