@@ -2,6 +2,7 @@
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
 #   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports
+# The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine").
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.
 set -uo pipefail
@@ -11,7 +12,7 @@ out=$(mktemp -d)
 mkdir -p "$dest"
 trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
 trap 'exit 143' TERM INT
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl 2>/dev/null) || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl 2>/dev/null) || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
 tum=.data/tum_fr1_xyz_37
 export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
@@ -69,6 +70,8 @@ for part in "$@"; do
              done 2>&1 | tee "$out/exports.txt"
              ls -la /tmp/exports/tiny /tmp/exports/tiny/nerfstudio | head -n 40 >> "$out/exports.txt" ;;
     viewer) python3 bench/viewer_overhead.py --out "$out" --preset tiny --frames 200 2>&1 | grep -v "^gsplatam" | tail -n 12 ;;
+    ray-live) python3 bench/ray_scale.py --out "$out" --stem ray_live --parts live --phone "${RAY_PHONE:-nerfcapture}" 2>&1 | grep -v "WARNING\|INFO" | tail -n 20 ;;
+    ray-matrix) python3 bench/ray_scale.py --out "$out" --stem ray_matrix --parts matrix 2>&1 | grep -v "WARNING\|INFO" | tail -n 20 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done

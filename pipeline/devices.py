@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import socket
 from dataclasses import replace
 
 import torch
@@ -43,3 +45,15 @@ def describe(device: torch.device, config: Config) -> str:
     if device.type == "cuda":
         return f"{torch.cuda.get_device_name(device)} (torch {torch.__version__}, CUDA {torch.version.cuda})"
     return f"CPU, {torch.get_num_threads()} threads (torch {torch.__version__}), renderer {config.render.backend}"
+
+
+def placement() -> dict[str, str | None]:
+    """Where this process computes: the host's name and, with CUDA, its GPU as the machine
+    numbers it (through CUDA_VISIBLE_DEVICES, which Ray sets for its workers) and its model."""
+    gpu = None
+    if torch.cuda.is_available():
+        index = torch.cuda.current_device()
+        visible = [d for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
+        physical = visible[index] if index < len(visible) else str(index)
+        gpu = f"{physical}: {torch.cuda.get_device_name(index)}"
+    return {"node": socket.gethostname(), "gpu": gpu}

@@ -233,10 +233,13 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
 
 def execute(graph: Graph, loader: str) -> RuntimeReport:
     """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly.
-    The handlers in place before are back afterwards."""
+    The handlers in place before are back afterwards. Signals reach the main thread only: run in
+    another thread (a Ray actor's method), the graph is stopped by one of its services instead
+    (app/remote_control.py)."""
+    signals = (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
     if loader == "sync":
         stop = threading.Event()
-        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in signals}
         try:
             return run_sync(graph, stop)
         finally:
@@ -246,7 +249,7 @@ def execute(graph: Graph, loader: str) -> RuntimeReport:
     async def main() -> RuntimeReport:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        previous = {sig: signal.getsignal(sig) for sig in signals}
         for sig in previous:
             loop.add_signal_handler(sig, stop.set)
         try:

@@ -6,9 +6,9 @@ always what a user would get.
 
 from __future__ import annotations
 
-import itertools
 import json
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +18,7 @@ import torch
 from pipeline.app.report import WARMUP_FRAMES, versions
 from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config, with_value
-from pipeline.devices import describe, resolve_device
+from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
 from pipeline.io.outputs.atomic import atomic_write_text
 
@@ -59,10 +59,21 @@ SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class Cell:
-    sequence: str  # a dataset folder, or a name in SYNTHETIC_SEQUENCES
+    sequence: str  # a dataset folder (absolute: every node of a cluster reads the same path), or a name in SYNTHETIC_SEQUENCES
     preset: str
     variant: str = "default"
     repeat: int = 0  # the same cell run again, for the run-to-run spread
+
+    @property
+    def name(self) -> str:
+        """Its run folder's name under the runs folder."""
+        return f"{Path(self.sequence).name}_{self.preset}_{self.variant}" + (f"_{self.repeat}" if self.repeat else "")
+
+
+def cells_of(sequences: list[str], presets: list[str], variants: list[str], repeats: int = 1) -> list[Cell]:
+    """The matrix in its order: sequences, then presets, then variants, each `repeats` times."""
+    folders = [s if s in SYNTHETIC_SEQUENCES else str(Path(s).resolve()) for s in sequences]
+    return [Cell(s, p, v, r) for s in folders for p in presets for v in variants for r in range(repeats)]
 
 
 def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
@@ -72,6 +83,35 @@ def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: s
         config = with_value(config, "dataset.path", cell.sequence)
     config = with_value(config, "run.output", str(output))
     return with_value(config, "run.name", run_name)
+
+
+def run_cell(cell: Cell, base_overrides: list[str], runs: Path, progress: bool, profile: bool) -> dict[str, Any]:
+    """Run one cell here (this process, or a Ray worker) -> its row, with where it ran and its
+    wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
+    start = time.perf_counter()
+    try:
+        config = cell_config(cell, base_overrides, runs, cell.name)
+        # a cell's run folder is scratch: a later benchmark of the same cell replaces it
+        metrics = run_slam(config, profile_trace=profile, progress=progress, overwrite=True).metrics
+        if metrics is None:
+            raise UserError("interrupted before its first frame")
+        row = row_of(cell, metrics)
+    except Exception as exc:  # any failure of this cell, reported in its row
+        log.error("bench: %s failed: %s", cell.name, exc)
+        row = failed_row(cell, exc)
+    return {**row, **placement(), "wall_s": time.perf_counter() - start}
+
+
+def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
+    """The row of a cell that did not finish: its name and the first line of its error."""
+    message = str(error).strip().splitlines()
+    return {
+        "sequence": Path(cell.sequence).name,
+        "preset": cell.preset,
+        "variant": cell.variant,
+        "repeat": cell.repeat,
+        "error": f"{type(error).__name__}: {message[0] if message else ''}",
+    }
 
 
 def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
@@ -102,43 +142,43 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
         "lost_frames": metrics["lost_frames"],
         "unmapped_frames": metrics.get("unmapped_frames"),
         "warmup_frames_excluded": t["warmup_frames_excluded"],
+        "error": None,
     }
 
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
     """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
-    defaults = {(r["sequence"], r["preset"]): r for r in rows if r["variant"] == "default" and r["repeat"] == 0}
+    ok_defaults = (r for r in rows if r["variant"] == "default" and r.get("repeat", 0) == 0 and not r["error"])
+    defaults = {(r["sequence"], r["preset"]): r for r in ok_defaults}
     for row in rows:
         base = defaults.get((row["sequence"], row["preset"]))
         for key in ("total_ms", "fps_steady", "ate_rmse_cm", "psnr_db"):
-            ok = base is not None and row[key] is not None and base[key]
-            row[f"{key}_ratio"] = row[key] / base[key] if base is not None and ok else None
+            value = row.get(key)
+            ok = base is not None and value is not None and base[key]
+            row[f"{key}_ratio"] = value / base[key] if base is not None and ok else None
 
 
 def run_matrix(
-    sequences: list[str],
-    presets: list[str],
-    variants: list[str],
-    base_overrides: list[str],
-    runs: Path,
-    progress: bool,
-    profile: bool = False,
-    repeats: int = 1,
+    cells: list[Cell], base_overrides: list[str], runs: Path, progress: bool, profile: bool = False
 ) -> dict[str, Any]:
-    """Run every cell `repeats` times; run folders (and the generated synthetic room) go under `runs`."""
+    """Run every cell here, one after the other; run folders (and the generated synthetic room) go under `runs`."""
+    start = time.perf_counter()
     rows = []
-    cells = [
-        Cell(s, p, v, r) for s in sequences for p in presets for v, r in itertools.product(variants, range(repeats))
-    ]
-    for number, cell in enumerate(cells, start=1):
-        name = f"{Path(cell.sequence).name}_{cell.preset}_{cell.variant}" + (f"_{cell.repeat}" if cell.repeat else "")
-        log.info("bench: cell %d of %d: %s", number, len(cells), name)
-        config = cell_config(cell, base_overrides, runs, name)
-        # a cell's run folder is scratch: a later benchmark of the same cell replaces it
-        metrics = run_slam(config, profile_trace=profile, progress=progress, overwrite=True).metrics
-        if metrics is None:
-            raise UserError("benchmark interrupted before its first frame")
-        rows.append(row_of(cell, metrics))
+    for done, cell in enumerate(cells):
+        log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
+        rows.append(run_cell(cell, base_overrides, runs, progress, profile))
+    return report_of(rows, base_overrides, profile, time.perf_counter() - start, cluster=None)
+
+
+def report_of(
+    rows: list[dict[str, Any]],
+    base_overrides: list[str],
+    profile: bool,
+    wall_s: float,
+    cluster: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The report of a whole matrix (rows in matrix order): the same keys for a local run and one
+    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local)."""
     add_ratios(rows)
     device = resolve_device("auto")
     return {
@@ -147,6 +187,8 @@ def run_matrix(
         "versions": versions(),
         "overrides": base_overrides,
         "profiled": profile,
+        "cluster": cluster,
+        "wall_s": wall_s,
         "rows": rows,
     }
 
@@ -174,7 +216,15 @@ COLUMNS = [
 ]  # fmt: skip
 
 
+PLACEMENT_COLUMNS = [("node", "{}"), ("gpu", "{}")]  # shown for a run on a cluster
+
+
 def markdown(report: dict[str, Any]) -> str:
+    rows, cluster = report["rows"], report["cluster"]
+    columns = COLUMNS + (PLACEMENT_COLUMNS if cluster else []) + ([("error", "{}")] if _failed(rows) else [])
+    where = "this machine, one cell after the other"
+    if cluster:
+        where = f"Ray cluster {cluster['address']} ({len(cluster['nodes'])} nodes), {cluster['declared']} per cell"
     lines = [
         f"Device: {report['device']}; driver {report['driver']}; versions {report['versions']}",
         f"Extra settings: {report['overrides'] or 'none'}. Times are means per frame; the first "
@@ -184,14 +234,20 @@ def markdown(report: dict[str, Any]) -> str:
             if report["profiled"]
             else ""
         ),
+        f"Ran on {where}: {len(rows)} cells in {report['wall_s']:.1f} s"
+        + (f", {len(_failed(rows))} failed." if _failed(rows) else "."),
         "",
-        "| " + " | ".join(name for name, _ in COLUMNS) + " |",
-        "|" + "---|" * len(COLUMNS),
+        "| " + " | ".join(name for name, _ in columns) + " |",
+        "|" + "---|" * len(columns),
     ]
-    for row in report["rows"]:
-        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in COLUMNS]
-        lines.append("| " + " | ".join(cells) + " |")
+    for row in rows:
+        cells = ["-" if row.get(name) is None else fmt.format(row[name]) for name, fmt in columns]
+        lines.append("| " + " | ".join(cell.replace("|", "/") for cell in cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _failed(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [row for row in rows if row["error"]]
 
 
 def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Path]:

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, NoReturn
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from pipeline import __version__
+from pipeline.app.logs import configure_logging
 from pipeline.config.schema import SYNTHETIC_CPU, SYNTHETIC_GPU
 from pipeline.errors import StageFailure, UserError
 from pipeline.extras import missing_extra
@@ -21,7 +22,6 @@ from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
 if TYPE_CHECKING:  # the commands import what they need when they run: --help stays fast
     from pipeline.config import Config
     from pipeline.io.datasets.base import Dataset
-    from pipeline.source import Source
 
 log = logging.getLogger("gsplatam")
 
@@ -119,13 +119,33 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[], help="applied to every cell"
     )
-    serve = command("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
-    live = serve.add_mutually_exclusive_group(required=True)
-    live.add_argument("--record3d", metavar="URL", help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20")
-    live.add_argument(
-        "--nerfcapture", action="store_true",
-        help="NeRFCapture app over DDS (domain 0, topic Frames); its pose per --set live.device_pose=...",
+    bench.add_argument(
+        "--ray", nargs="?", const="", metavar="ADDRESS",
+        help="each cell a Ray task, on the cluster at ADDRESS (host:port, or auto) or, without one, a local cluster",
     )  # fmt: skip
+    bench.add_argument(
+        "--gpus-per-cell", type=float, default=1.0, help="with --ray: GPUs each cell declares (fractions share one)"
+    )
+    serve = command("serve", help="live daemon: reconstruct from a phone's stream until Ctrl-C")
+    serve.add_argument(
+        "--record3d", metavar="URL", action="append", default=[],
+        help="Record3D app's Wi-Fi stream, e.g. http://192.168.1.20 (repeatable with --ray)",
+    )  # fmt: skip
+    serve.add_argument(
+        "--nerfcapture", metavar="DOMAIN", nargs="?", const="", action="append", default=[],
+        help="NeRFCapture app over DDS (topic Frames, domain live.dds_domain: 0, or DOMAIN; repeatable with --ray, "
+        "a domain each); its pose per --set live.device_pose=...",
+    )  # fmt: skip
+    serve.add_argument(
+        "--ray", nargs="?", const="", metavar="ADDRESS",
+        help="every source a session on the Ray cluster at ADDRESS (host:port, or auto) or, without one, a local cluster",
+    )  # fmt: skip
+    serve.add_argument(
+        "--gpus-per-session",
+        type=float,
+        default=1.0,
+        help="with --ray: GPUs each session declares (fractions share one)",
+    )
     _add_config_options(serve)
     serve.add_argument("--name", help="run folder name under --output (default: live_<source>_<preset>-<date>-<time>)")
     serve.add_argument("--overwrite", action="store_true", help="replace the earlier run in the --name folder")
@@ -143,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     fake_nc.add_argument("--fps", type=float, default=10.0, help="frame rate")
     fake_nc.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a receiver")
     fake_nc.add_argument("--domain", type=int, default=0, help="DDS domain id (default: 0, the app's)")
+    fake_nc.add_argument("--loop", action="store_true", help="start over at the end instead of ending the stream")
     fake_nc.add_argument("--output", default="outputs", help="where the generated synthetic room is cached")
     view = command("view", help="viewer for a saved map: a run folder or a 3DGS PLY")
     view.add_argument("path", help="run folder (map.ply, trajectory.txt) or a .ply file")
@@ -242,7 +263,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from pipeline.app.bench import ABLATIONS, default_variants, markdown, run_matrix, write_report
+    from pipeline.app.bench import ABLATIONS, cells_of, default_variants, markdown, run_matrix, write_report
     from pipeline.config import load_config
 
     variants = args.variants.split(",") if args.variants else default_variants(args.ablations)
@@ -254,44 +275,46 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UserError("--repeats must be at least 1")
     for preset in presets:
         load_config(preset, overrides=args.overrides)  # report bad presets and keys before any work
-    out = Path(args.out)
-    report = run_matrix(
-        args.sequences or ["synthetic"],
-        presets,
-        variants,
-        args.overrides,
-        Path(args.runs),
-        not args.quiet,
-        args.profile,
-        args.repeats,
-    )
-    json_path, md_path = write_report(report, out, args.stem)
+    cells = cells_of(args.sequences or ["synthetic"], presets, variants, args.repeats)
+    if args.ray is None:
+        _check_folders(args.sequences)  # on a cluster only the nodes need to see them: a cell reports it
+        report = run_matrix(cells, args.overrides, Path(args.runs), not args.quiet, args.profile)
+    else:
+        _require_ray()
+        from pipeline.app.ray_bench import run_matrix_on_ray
+
+        report = run_matrix_on_ray(
+            cells, args.overrides, Path(args.runs), args.ray or None, args.gpus_per_cell, args.profile
+        )
+    json_path, md_path = write_report(report, Path(args.out), args.stem)
     print(markdown(report))
     print(f"wrote {json_path} and {md_path}")
-    return 0
+    failed = sum(bool(row["error"]) for row in report["rows"])
+    if failed:
+        print(f"{failed} of {len(cells)} cells failed (their error is in the table)", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _check_folders(sequences: list[str]) -> None:
+    from pipeline.app.bench import SYNTHETIC_SEQUENCES
+
+    missing = [s for s in sequences if s not in SYNTHETIC_SEQUENCES and not Path(s).is_dir()]
+    if missing:
+        raise UserError(f"dataset folder not found: {missing[0]}")
+
+
+def _require_ray() -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        raise UserError("--ray needs Ray: pip install 'gsplatam[cluster]'")
 
 
 LIVE_SCHEMES = ("record3d:", "nerfcapture:")  # `run record3d:http://PHONE` / `run nerfcapture:`: no recording
 
 
-def live_source(spec: str, config: Config) -> Source:
-    """`record3d:URL` or `nerfcapture:` -> the live source."""
-    from pipeline.devices import live_max_width, resolve_device
-
-    if spec.startswith("nerfcapture:"):
-        from pipeline.io.live.nerfcapture import NeRFCaptureSource
-
-        return NeRFCaptureSource(config.live.device_pose, config.live.dds_domain)
-    from pipeline.io.live.record3d import Record3DSource
-
-    url = spec.removeprefix("record3d:")
-    if not url:
-        raise UserError("record3d: needs the phone's address, e.g. record3d:http://192.168.1.20")
-    size = (config.live.width, config.live.height) if config.live.width else None
-    return Record3DSource(url, config.live, size, live_max_width(resolve_device(config.run.device)))
-
-
 def _serve_live(spec: str, config: Config, progress: bool, overwrite: bool) -> int:
+    from pipeline.app.live_sources import live_source
     from pipeline.app.report import files_and_next_steps
     from pipeline.app.serve import serve
 
@@ -305,8 +328,18 @@ def _serve_live(spec: str, config: Config, progress: bool, overwrite: bool) -> i
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    spec = "nerfcapture:" if args.nerfcapture else f"record3d:{args.record3d}"
-    return _serve_live(spec, _config_from(args), not args.quiet, args.overwrite)
+    specs = [f"record3d:{url}" for url in args.record3d] + [f"nerfcapture:{domain}" for domain in args.nerfcapture]
+    if not specs:
+        raise UserError("serve needs a source: --record3d URL or --nerfcapture")
+    config = _config_from(args)
+    if args.ray is not None:
+        _require_ray()
+        from pipeline.app.ray_serve import serve_on_ray
+
+        return serve_on_ray(specs, config, args.ray or None, args.gpus_per_session)
+    if len(specs) > 1:
+        raise UserError("several sources need --ray (each a session of its own)")
+    return _serve_live(specs[0], config, not args.quiet, args.overwrite)
 
 
 # The default scene of the fake phone: 256x192 is the iPhone LiDAR's depth resolution; 10 s at 30 fps.
@@ -369,7 +402,7 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
         len(dataset),
         args.fps,
     )
-    sent = publish_dataset(dataset, args.fps, args.wait, domain_id=args.domain)
+    sent = publish_dataset(dataset, args.fps, args.wait, domain_id=args.domain, loop=args.loop)
     print(f"published {sent} frames")
     return 0 if sent else 1
 
@@ -420,10 +453,8 @@ def _terminate_as_interrupt(signum: int, frame: object) -> None:
 
 
 def _configure_logging(args: argparse.Namespace) -> None:
-    logging.basicConfig(level=logging.INFO, format="gsplatam: %(message)s", stream=sys.stderr)
+    configure_logging()
     log.setLevel(logging.DEBUG if args.verbose else getattr(logging, args.log_level.upper()))
-    for chatty in ("aioice", "aiortc", "websockets"):  # per-candidate ICE and per-connection logs at INFO
-        logging.getLogger(chatty).setLevel(logging.WARNING)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.app.remote_control import RemoteControl
 from pipeline.app.report import run_summary, timing_summary, versions
 from pipeline.app.run_folders import new_run_folder
 from pipeline.app.session import Session, complete_config, describe_run, execute_session, open_session
@@ -126,9 +127,15 @@ async def status_on_bar(sink: ResultSink, read: Callable[[], dict[str, Any]], st
             await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
 
 
-def serve(config: Config, source: Source, progress: bool = True, overwrite: bool = False) -> ServeResult:
-    """Reconstruct from `source` until it ends or SIGINT/SIGTERM; save periodically and at the
-    end, into a new run folder (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save
+def serve(
+    config: Config,
+    source: Source,
+    progress: bool = True,
+    overwrite: bool = False,
+    control: RemoteControl | None = None,
+) -> ServeResult:
+    """Reconstruct from `source` until it ends or SIGINT/SIGTERM (or `control` stops it, from
+    another thread); save periodically and at the end, into a new run folder (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save
     that fails (a full disk) is reported once in the log and the status and SLAM goes on; a
     final save that fails raises OutputError (the last complete save stays)."""
     device = resolve_device(config.run.device)
@@ -150,6 +157,8 @@ def serve(config: Config, source: Source, progress: bool = True, overwrite: bool
             graph.services.append(partial(status_on_bar, session.sink, read))
             if config.live.status_port:
                 graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
+            if control is not None:
+                graph.services.append(control.service(read))
 
         try:
             with signals_noted():

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
+import tempfile
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -48,13 +51,28 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, 
 
 
 def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True, device: torch.device = CPU) -> Path:
-    """The folder of the synthetic sequence for `config`, generated on first use."""
+    """The folder of the synthetic sequence for `config`, generated on first use. It is written
+    beside its place and renamed into it, so processes that want the same sequence at once (the
+    cells of a bench on one node) each see it whole: the first rename wins, the others' copies go."""
     key = f"room_s{config.seed}_{config.width}x{config.height}_{config.frames}f_v{config.speed:g}_j{config.jitter:g}"
     if config.layout == "tum":
         key += f"_tum_n{config.depth_noise:g}_h{config.holes:g}_t{config.time_jitter:g}"
     path = root / key
-    manifest = path / MANIFEST
-    if manifest.exists() and json.loads(manifest.read_text()) == json.loads(json.dumps(asdict(config))):
+    if _matches(path, config):
         return path
-    write_synthetic(path, config, progress, device)
+    root.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
+    try:
+        write_synthetic(partial, config, progress, device)
+        if path.exists() and not _matches(path, config):
+            shutil.rmtree(path)  # written for other parameters (an older version)
+        with contextlib.suppress(OSError):  # another process renamed its copy first
+            partial.rename(path)
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
     return path
+
+
+def _matches(path: Path, config: SyntheticConfig) -> bool:
+    manifest = path / MANIFEST
+    return manifest.exists() and json.loads(manifest.read_text()) == json.loads(json.dumps(asdict(config)))

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -36,9 +38,11 @@ def publish_dataset(
     wait_for_reader_s: float = 30.0,
     stop: threading.Event | None = None,
     domain_id: int = DOMAIN_ID,
+    loop: bool = False,
 ) -> int:
     """Publish every frame of `dataset` at `fps` once a reader has matched (reliable QoS, no
-    history: a late reader would miss frames); -> frames published."""
+    history: a late reader would miss frames), over and over with `loop` (ids and timestamps go
+    on increasing, as the app's would); -> frames published."""
     dp = participant(domain_id)
     writer = DataWriter(dp, Topic(dp, TOPIC, SplatCaptureFrame), qos=reliable_qos())
     stop = stop or threading.Event()
@@ -49,10 +53,14 @@ def publish_dataset(
             return 0
         time.sleep(0.05)
     start = time.monotonic()
-    for count, ref in enumerate(dataset.refs):
-        if stop.wait(max(0.0, start + count / fps - time.monotonic())):
-            return count
-        frame = dataset.decode(ref)
-        c2w = frame.c2w_gt if frame.c2w_gt is not None else np.eye(4)
-        writer.write(sample_from_frame(frame, count + 1, ARKIT_WORLD @ c2w))
-    return len(dataset)
+    count = 0
+    for lap in itertools.count() if loop and len(dataset) else range(1):
+        for ref in dataset.refs:
+            if stop.wait(max(0.0, start + count / fps - time.monotonic())):
+                return count
+            frame = dataset.decode(ref)
+            frame = replace(frame, timestamp=frame.timestamp + lap * len(dataset) / fps)  # the clock goes on
+            c2w = frame.c2w_gt if frame.c2w_gt is not None else np.eye(4)
+            writer.write(sample_from_frame(frame, count + 1, ARKIT_WORLD @ c2w))
+            count += 1
+    return count
