@@ -6,6 +6,7 @@ import itertools
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import cv2
@@ -39,10 +40,13 @@ def publish_dataset(
     stop: threading.Event | None = None,
     domain_id: int = DOMAIN_ID,
     loop: bool = False,
+    pace: Callable[[int], None] | None = None,
 ) -> int:
     """Publish every frame of `dataset` at `fps` once a reader has matched (reliable QoS, no
     history: a late reader would miss frames), over and over with `loop` (ids and timestamps go
-    on increasing, as the app's would); -> frames published."""
+    on increasing, as the app's would); -> frames published. `pace`, when given, is called with
+    the count published so far before each frame and returns when the next may go (a publisher
+    held to its receiver's speed, as a test needs on a slow machine; `fps` stays the top rate)."""
     dp = participant(domain_id)
     writer = DataWriter(dp, Topic(dp, TOPIC, SplatCaptureFrame), qos=reliable_qos())
     stop = stop or threading.Event()
@@ -58,6 +62,8 @@ def publish_dataset(
         for ref in dataset.refs:
             if stop.wait(max(0.0, start + count / fps - time.monotonic())):
                 return count
+            if pace is not None:
+                pace(count)
             frame = dataset.decode(ref)
             frame = replace(frame, timestamp=frame.timestamp + lap * len(dataset) / fps)  # the clock goes on
             c2w = frame.c2w_gt if frame.c2w_gt is not None else np.eye(4)

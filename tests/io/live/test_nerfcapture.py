@@ -269,7 +269,17 @@ def test_live_reconstruction_from_the_fake_publisher(
         "--set", "tracking.method=adam",
     ]  # fmt: skip
     stop = threading.Event()
-    publisher = threading.Thread(target=publish_dataset, args=(capture_dataset, 2.0, 60.0, stop, dds_domain))
+
+    def after_the_last_is_processed(published: int) -> None:
+        """A live daemon processes only the newest frame: one frame at a time keeps every one."""
+        while not stop.is_set() and (read_status(status_port) or {}).get("processed", 0) < published:
+            stop.wait(0.1)
+
+    publisher = threading.Thread(
+        target=publish_dataset,
+        args=(capture_dataset, 20.0, 60.0, stop, dds_domain),
+        kwargs={"pace": after_the_last_is_processed},
+    )
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
     publisher.start()
