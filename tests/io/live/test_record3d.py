@@ -129,7 +129,8 @@ def test_malformed_intrinsics_are_rejected_with_a_reason(metadata: Any) -> None:
 
 
 def _packet(packed: np.ndarray, metadata: dict[str, Any], index: int = 0) -> Record3DPacket:
-    return Record3DPacket(index, 0.1 * index, av.VideoFrame.from_ndarray(packed, format="rgb24"), metadata)
+    image = av.VideoFrame.from_ndarray(packed, format="rgb24")
+    return Record3DPacket(index, 0.1 * index, image, metadata, "bt601_limited")  # RGB: no YUV matrix applies
 
 
 def test_the_decoder_keeps_one_working_size_when_the_stream_resizes(phone_dataset: Dataset) -> None:
@@ -138,7 +139,7 @@ def test_the_decoder_keeps_one_working_size_when_the_stream_resizes(phone_datase
     source = Record3DSource("http://phone", LiveConfig())
     first = source.decode(_packet(pack_frame(frame.color, frame.depth), meta))
     small = av.VideoFrame.from_ndarray(pack_frame(frame.color, frame.depth), format="rgb24").reformat(64, 24)
-    second = source.decode(Record3DPacket(1, 0.1, small, meta))
+    second = source.decode(Record3DPacket(1, 0.1, small, meta, "bt601_limited"))
     assert first is not None and second is not None
     assert second.color.shape == first.color.shape == (96, 128, 3)
     assert np.allclose(second.intrinsics, first.intrinsics)
