@@ -252,7 +252,7 @@ class Record3DSession:
             track = await asyncio.wait_for(self._video, self.config.connect_timeout_s)
         except TimeoutError:
             raise ProtocolError("connected, but the phone sent no video track") from None
-        timeout = self.config.connect_timeout_s
+        first, timeout = True, self.config.connect_timeout_s
         while True:
             try:
                 frame = await asyncio.wait_for(track.recv(), timeout)
@@ -261,9 +261,9 @@ class Record3DSession:
                 raise StreamEnded("the phone ended the stream") from None
             except TimeoutError:
                 raise StreamEnded(f"no frame for {timeout:g} s: the phone is gone or stalled") from None
-            if timeout != self.config.stall_timeout_s:
+            if first:
                 self.on_stage(Stage.STREAMING)
-                timeout = self.config.stall_timeout_s
+                first, timeout = False, self.config.stall_timeout_s
             yield frame
 
     async def close(self) -> None:

@@ -519,7 +519,10 @@ def test_the_receiver_reconnects_at_the_first_probe_after_a_busy_phone_frees(
     """While another receiver holds the phone, the source probes every busy_probe_s and says
     it is waiting; once freed it connects at once (back-off alone would wait an hour here), and
     reports `connected` only at the first frame."""
-    config = replace(FAST, retry_initial_s=3600.0, retry_max_s=3600.0, busy_probe_s=0.02)
+    hour = 3600.0  # equal timeouts, as by default: the first frame must still count as the stage change
+    config = replace(
+        FAST, retry_initial_s=hour, retry_max_s=hour, busy_probe_s=0.02, stall_timeout_s=FAST.connect_timeout_s
+    )
 
     async def main() -> None:
         phone = FakePhone(phone_dataset, fps=30, loop=True)
