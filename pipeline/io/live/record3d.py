@@ -221,8 +221,9 @@ class Record3DSession:
                 raise ProtocolError(f"{self.url}/getOffer: unusable offer SDP ({exc})") from exc
             except OperationError:  # no codec in common
                 listed = ", ".join(_video_codecs(offered)) or "none"
+                takes = ", ".join(name.removeprefix("video/") for name in VIDEO_CODECS)
                 raise ProtocolError(
-                    f"{self.url}/getOffer: no codec this receiver decodes (the offer lists video {listed}; it takes H264, VP8)"
+                    f"{self.url}/getOffer: no codec this receiver decodes (the offer lists video {listed}; it takes {takes})"
                 ) from None
             answer = sdp_text.SessionDescription.parse(pc.localDescription.sdp)
             if not _udp_candidates(answer):
