@@ -24,6 +24,7 @@ class SourceCounters:
     rejected: int = 0  # malformed, duplicate or out-of-order messages
     ignored: int = 0  # frames of another publisher than the one followed (NeRFCapture)
     connected: bool = False  # a live peer is streaming now (always False for files)
+    stage: str = ""  # a live connection's progress where the source has stages (Record3D's `Stage`)
     connections: int = 0  # live connections made so far
     last_error: str = ""
 

@@ -15,6 +15,7 @@ from pipeline.config.schema import (
     PRESETS,
     SYNTHETIC_CPU,
     SYNTHETIC_GPU,
+    ColorEncoding,
     Config,
     DatasetConfig,
     DatasetFormat,
@@ -42,7 +43,7 @@ from pipeline.config.schema import (
 )
 
 __all__ = [
-    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "Config", "DatasetConfig",
+    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
     "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",

@@ -14,6 +14,7 @@ Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
 TrackingMethod = Literal["adam", "align"]
 ViewerKind = Literal["viser", "open3d"]
+ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
 
 
 @dataclass(frozen=True)
@@ -184,8 +185,10 @@ class LiveConfig:
     status_port: int = 8765  # JSON status at http://status_host:status_port/status; 0: off
     retry_initial_s: float = 1.0  # back-off after a failed connection, doubling up to retry_max_s
     retry_max_s: float = 30.0  # longest back-off between reconnection attempts
+    busy_probe_s: float = 1.0  # a busy phone (HTTP 403) is asked again this often, without back-off
     connect_timeout_s: float = 10.0  # signalling to first frame
-    stall_timeout_s: float = 5.0  # no frame for this long: the phone is gone, reconnect
+    stall_timeout_s: float = 10.0  # no frame for this long: the phone is gone, reconnect
+    vp8_color: ColorEncoding = "bt709_full"  # Record3D: how VP8 frames (which signal no matrix) are decoded
     device_pose: PoseUse = "initial_guess"  # NeRFCapture: what the phone's pose is used for
     dds_domain: int = 0  # NeRFCapture: the DDS domain id (the app uses 0)
     max_keyframes: int = 200  # a live session's keyframes.max_kept unless that is set: memory flat for hours

@@ -2,7 +2,8 @@
 
 It is how tests, demos and users without an iPhone exercise the `serve` daemon. It serves
 `/getOffer` (403 while a receiver is connected), `/answer`, `/metadata` (K column-major), and
-sends H.264 video of hue-encoded depth | colour at a fixed frame rate. The frame cursor is kept
+sends H.264 video of hue-encoded depth | colour at a fixed frame rate (or VP8, in either YUV
+convention, to play a browser-style sender). The frame cursor is kept
 across connections, like a phone that keeps moving while the receiver reconnects.
 """
 
@@ -20,9 +21,10 @@ from aiohttp import web
 from aiortc import RTCPeerConnection, RTCRtpSender, RTCSessionDescription
 from aiortc.mediastreams import AudioStreamTrack, MediaStreamError, MediaStreamTrack
 
+from pipeline.config import ColorEncoding
 from pipeline.io.datasets.base import Dataset
 from pipeline.io.live.record3d import no_stun
-from pipeline.io.live.record3d_format import metadata_for, pack_frame
+from pipeline.io.live.record3d_format import metadata_for, pack_frame, yuv_frame
 
 log = logging.getLogger("gsplatam")
 
@@ -35,6 +37,7 @@ class PhoneState:
     dataset: Dataset
     fps: float
     loop: bool
+    color: ColorEncoding  # the YUV matrix and range of the frames the encoder gets (neither codec signals it)
     cursor: int = 0  # next dataset frame to send
     sent: int = 0
 
@@ -76,7 +79,7 @@ class DatasetVideoTrack(MediaStreamTrack):
             self.stop()
             raise MediaStreamError
         frame = await asyncio.to_thread(self.state.dataset.decode, self.state.dataset.refs[index])
-        image = av.VideoFrame.from_ndarray(pack_frame(frame.color, frame.depth), format="rgb24")
+        image = yuv_frame(pack_frame(frame.color, frame.depth), self.state.color)
         image.pts = round(self._count * CLOCK_RATE / self.state.fps)
         image.time_base = fractions.Fraction(1, CLOCK_RATE)
         self._count += 1
@@ -93,16 +96,18 @@ class FakePhone:
         fps: float = 30.0,
         loop: bool = False,
         answer_path: str = "/answer",
-        codec: str = "H264",
+        codecs: tuple[str, ...] = ("H264",),
+        color: ColorEncoding = "bt601_limited",
         audio: bool = False,
         per_connection: int = 0,
     ) -> None:
-        """`answer_path`, `codec` and `audio` let tests play other senders: an older app
-        (`/sendAnswer`) or a browser-style peer (VP8 with an audio track); `per_connection` > 0
-        ends each connection after that many frames, as a user stopping the stream in the app."""
-        self.state = PhoneState(dataset, fps, loop)
+        """`answer_path`, `codecs` (offered in this order), `color` and `audio` let tests play
+        other senders: an older app (`/sendAnswer`) or a browser-style peer (VP8 first, BT.709
+        full range, an audio track); `per_connection` > 0 ends each connection after that many
+        frames, as a user stopping the stream in the app."""
+        self.state = PhoneState(dataset, fps, loop, color)
         self.per_connection = per_connection
-        self.codec = codec
+        self.codecs = codecs
         self.audio = audio
         self.pc: RTCPeerConnection | None = None
         self.app = web.Application()
@@ -133,8 +138,9 @@ class FakePhone:
         self.pc = pc = RTCPeerConnection(no_stun())
         track = DatasetVideoTrack(self.state, self.per_connection, self._disconnect_soon)
         transceiver = pc.addTransceiver(track, direction="sendonly")
-        codecs = [c for c in RTCRtpSender.getCapabilities("video").codecs if c.mimeType == f"video/{self.codec}"]
-        transceiver.setCodecPreferences(codecs)
+        offered = [f"video/{name}" for name in self.codecs]
+        codecs = [c for c in RTCRtpSender.getCapabilities("video").codecs if c.mimeType in offered]
+        transceiver.setCodecPreferences(sorted(codecs, key=lambda c: offered.index(c.mimeType)))
         if self.audio:
             pc.addTrack(AudioStreamTrack())
         pc.on("connectionstatechange", self._on_state_change)

@@ -3,8 +3,9 @@ source that reconnects with back-off.
 
 The phone serves HTTP on port 80: `GET /getOffer` -> {"type": "offer", "sdp": ...} (403 while
 another receiver is connected), `POST /answer` {"type": "answer", "data": <sdp>} (older apps:
-`/sendAnswer`), `GET /metadata` -> {"K": [...], "originalSize": [w, h]}. ICE is not trickled;
-aiortc's `setLocalDescription` gathers every candidate before the answer is sent.
+`/sendAnswer`), `GET /metadata` -> {"K": [...], "originalSize": [w, h]}. ICE is not trickled:
+the offer carries the phone's candidates, and aiortc's `setLocalDescription` gathers every one of
+ours before the answer is sent. The answer picks H.264 whenever the offer lists it, else VP8.
 """
 
 from __future__ import annotations
@@ -13,27 +14,41 @@ import asyncio
 import json
 import logging
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 from urllib.parse import urlsplit
 
 import aiohttp
 import av
-from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
+from aiortc import RTCConfiguration, RTCPeerConnection, RTCRtpCodecCapability, RTCRtpReceiver, RTCSessionDescription
+from aiortc import sdp as sdp_text
 from aiortc.contrib.media import MediaBlackhole
+from aiortc.exceptions import OperationError
 from aiortc.mediastreams import MediaStreamError, MediaStreamTrack
 
-from pipeline.config import LiveConfig
+from pipeline.config import ColorEncoding, LiveConfig
 from pipeline.errors import DataError, UserError
 from pipeline.frame import Frame
 from pipeline.io.images import resize_rgbd
-from pipeline.io.live.record3d_format import intrinsics_from_metadata, unpack_frame
+from pipeline.io.live.record3d_format import intrinsics_from_metadata, rgb_array, unpack_frame
 from pipeline.source import SourceCounters
 
 log = logging.getLogger("gsplatam")
 
 HTTP_TIMEOUT_S = 5.0
+VIDEO_CODECS = ("video/H264", "video/VP8")  # what the answer accepts, best first: H.264 is the app's own
+H264_COLOR: ColorEncoding = "bt601_limited"  # H.264 that signals no matrix (what aiortc's encoder sends)
+
+
+class Stage(StrEnum):
+    """A connection's progress, as the status shows it (`stage`)."""
+
+    WAITING = "waiting"  # between attempts: `last_error` says why
+    SIGNALLING = "signalling"  # metadata, offer and answer over HTTP
+    ICE_CONNECTED = "ice_connected"  # a candidate pair answers; no frame yet
+    STREAMING = "streaming"  # the first frame arrived: `connected`
 
 
 class PhoneError(Exception):
@@ -79,6 +94,41 @@ def phone_url(address: str) -> str:
     if not parts.hostname or parts.path.strip("/") or parts.query or parts.fragment:
         raise UserError(f"bad phone address '{address}': expected http://HOST or http://HOST:PORT")
     return url
+
+
+def receive_codecs() -> list[RTCRtpCodecCapability]:
+    """aiortc's video codecs in VIDEO_CODECS' order (with retransmission), for the receiving transceiver."""
+    capabilities = RTCRtpReceiver.getCapabilities("video")
+    assert capabilities is not None, "aiortc receives video"
+    ranked = (*VIDEO_CODECS, "video/rtx")
+    usable = [c for c in capabilities.codecs if c.mimeType in ranked]
+    return sorted(usable, key=lambda c: ranked.index(c.mimeType))
+
+
+def _video_codecs(description: sdp_text.SessionDescription) -> list[str]:
+    """The video codecs a session description lists, in its order, without retransmission."""
+    names = [c.mimeType.removeprefix("video/") for m in description.media if m.kind == "video" for c in m.rtp.codecs]
+    return [name for name in dict.fromkeys(names) if name.lower() != "rtx"]
+
+
+def _udp_candidates(description: sdp_text.SessionDescription) -> int:
+    """How many ICE candidates aiortc can use (UDP) the description carries."""
+    return sum(c.protocol.lower() == "udp" for m in description.media for c in m.ice_candidates)
+
+
+def _read_offer(url: str, offer: Any) -> sdp_text.SessionDescription:
+    """`/getOffer`'s reply -> its parsed SDP; ProtocolError for an offer this receiver cannot answer."""
+    if not isinstance(offer, dict) or not isinstance(offer.get("sdp"), str) or offer.get("type") != "offer":
+        raise ProtocolError(f"{url}: expected {{'type': 'offer', 'sdp': ...}}, got {offer!r:.80}")
+    try:
+        description = sdp_text.SessionDescription.parse(offer["sdp"])
+    except ValueError as exc:
+        raise ProtocolError(f"{url}: unusable offer SDP ({exc})") from exc
+    if not any(m.kind == "video" for m in description.media):
+        raise ProtocolError(f"{url}: the offer has no video track")
+    if not _udp_candidates(description):
+        raise ProtocolError(f"{url}: the offer has no usable ICE candidate (no UDP address of the phone)")
+    return description
 
 
 def _reply_text(url: str, body: bytes) -> str:
@@ -135,13 +185,21 @@ class Record3DSession:
 
     url: str
     config: LiveConfig
+    on_stage: Callable[[Stage], None] = lambda stage: None
     metadata: dict[str, Any] = field(default_factory=dict)
+    codec: str = ""  # the video codec of the answer (H264 or VP8)
     _pc: RTCPeerConnection | None = None
     _video: asyncio.Future[MediaStreamTrack] | None = None
     _sinks: list[MediaBlackhole] = field(default_factory=list)
     _sink_starts: list[asyncio.Task[None]] = field(default_factory=list)  # held: the loop keeps only weak refs
 
+    @property
+    def color(self) -> ColorEncoding:
+        """How frames that signal no YUV matrix are decoded: by the negotiated codec's convention."""
+        return H264_COLOR if self.codec == "H264" else self.config.vp8_color
+
     async def open(self) -> None:
+        self.on_stage(Stage.SIGNALLING)
         timeout = aiohttp.ClientTimeout(total=HTTP_TIMEOUT_S)
         async with aiohttp.ClientSession(timeout=timeout) as http:
             self.metadata = await _get_json(http, self.url + "/metadata")
@@ -150,19 +208,33 @@ class Record3DSession:
             except DataError as exc:
                 raise ProtocolError(f"{self.url}/metadata: {exc}") from exc
             offer = await _get_json(http, self.url + "/getOffer")
-            if not isinstance(offer, dict) or not isinstance(offer.get("sdp"), str) or offer.get("type") != "offer":
-                raise ProtocolError(f"{self.url}/getOffer: expected {{'type': 'offer', 'sdp': ...}}, got {offer!r:.80}")
-            if "m=video" not in offer["sdp"]:
-                raise ProtocolError(f"{self.url}/getOffer: the offer has no video track")
+            offered = _read_offer(self.url + "/getOffer", offer)
             self._pc = pc = RTCPeerConnection(no_stun())
             self._video = asyncio.get_running_loop().create_future()
             pc.on("track", self._on_track)
+            pc.on("iceconnectionstatechange", self._on_ice_state)
+            pc.addTransceiver("video", direction="recvonly").setCodecPreferences(receive_codecs())
             try:
                 await pc.setRemoteDescription(RTCSessionDescription(offer["sdp"], "offer"))
                 await pc.setLocalDescription(await pc.createAnswer())
             except ValueError as exc:
                 raise ProtocolError(f"{self.url}/getOffer: unusable offer SDP ({exc})") from exc
+            except OperationError:  # no codec in common
+                listed = ", ".join(_video_codecs(offered)) or "none"
+                takes = ", ".join(name.removeprefix("video/") for name in VIDEO_CODECS)
+                raise ProtocolError(
+                    f"{self.url}/getOffer: no codec this receiver decodes (the offer lists video {listed}; it takes {takes})"
+                ) from None
+            answer = sdp_text.SessionDescription.parse(pc.localDescription.sdp)
+            if not _udp_candidates(answer):
+                raise PhoneError("this host gathered no usable ICE candidate (no UDP address on a network interface)")
+            self.codec = _video_codecs(answer)[0]
             await _post_answer(http, self.url, pc.localDescription.sdp)
+            log.info("record3d: answered %s with %s, connecting", self.url, self.codec)
+
+    def _on_ice_state(self) -> None:
+        if self._pc is not None and self._pc.iceConnectionState == "completed":
+            self.on_stage(Stage.ICE_CONNECTED)
 
     def _on_track(self, track: MediaStreamTrack) -> None:
         if track.kind == "video" and self._video is not None and not self._video.done():
@@ -181,7 +253,7 @@ class Record3DSession:
             track = await asyncio.wait_for(self._video, self.config.connect_timeout_s)
         except TimeoutError:
             raise ProtocolError("connected, but the phone sent no video track") from None
-        timeout = self.config.connect_timeout_s
+        first, timeout = True, self.config.connect_timeout_s
         while True:
             try:
                 frame = await asyncio.wait_for(track.recv(), timeout)
@@ -190,7 +262,9 @@ class Record3DSession:
                 raise StreamEnded("the phone ended the stream") from None
             except TimeoutError:
                 raise StreamEnded(f"no frame for {timeout:g} s: the phone is gone or stalled") from None
-            timeout = self.config.stall_timeout_s
+            if first:
+                self.on_stage(Stage.STREAMING)
+                first, timeout = False, self.config.stall_timeout_s
             yield frame
 
     async def close(self) -> None:
@@ -213,6 +287,7 @@ class Record3DPacket:
     timestamp: float  # seconds since the source started, host clock at arrival
     image: av.VideoFrame  # packed [H, 2W] depth | colour
     metadata: dict[str, Any]
+    color: ColorEncoding  # how the image is decoded when it signals no YUV matrix
     received_at: float = field(default_factory=time.perf_counter)  # host clock, s
 
 
@@ -239,39 +314,43 @@ class Record3DSource:
         self._clock0 = time.perf_counter()
 
     async def __aiter__(self) -> AsyncIterator[Record3DPacket]:
-        delay = self.config.retry_initial_s
+        backoff = Backoff(self.config)
         while True:
-            session = Record3DSession(self.url, self.config)
+            session = Record3DSession(self.url, self.config, self._on_stage)
             streamed = False
             try:
                 await session.open()
-                log.info("record3d: connected to %s", self.url)
-                self.counters.connected = True
-                self.counters.connections += 1
                 async for image in session.frames():
                     streamed = True
-                    yield self._packet(image, session.metadata)
-            except PhoneError as exc:
-                self.counters.last_error = str(exc)
-            except Exception as exc:  # anything else the phone's replies cause (e.g. in aiortc): never fatal
-                self.counters.last_error = f"unexpected {exc.__class__.__name__} from the phone: {exc}"
+                    yield self._packet(image, session)
+            except Exception as exc:  # a PhoneError, or whatever else the phone's replies cause: never fatal
+                error = exc
             finally:
                 self.counters.connected = False
+                self.counters.stage = Stage.WAITING
                 await session.close()
-            if streamed:
-                delay = self.config.retry_initial_s
+            self.counters.last_error = describe(error)
+            delay = backoff.after(error, streamed)
             log.warning("record3d: %s; retrying in %.1f s", self.counters.last_error, delay)
             await asyncio.sleep(delay)
-            delay = min(2 * delay, self.config.retry_max_s)
 
-    def _packet(self, image: av.VideoFrame, metadata: dict[str, Any]) -> Record3DPacket:
+    def _on_stage(self, stage: Stage) -> None:
+        self.counters.stage = stage
+        if stage is Stage.ICE_CONNECTED:
+            log.info("record3d: ICE connected to %s, waiting for the first frame", self.url)
+        elif stage is Stage.STREAMING:
+            log.info("record3d: connected to %s, frames arriving", self.url)
+            self.counters.connected = True
+            self.counters.connections += 1
+
+    def _packet(self, image: av.VideoFrame, session: Record3DSession) -> Record3DPacket:
         index = self.counters.received
         self.counters.received += 1
-        return Record3DPacket(index, time.perf_counter() - self._clock0, image, metadata)
+        return Record3DPacket(index, time.perf_counter() - self._clock0, image, session.metadata, session.color)
 
     def decode(self, packet: Record3DPacket) -> Frame | None:
         """-> the frame at the working size, or None for an unusable one (counted as skipped)."""
-        packed = packet.image.to_ndarray(format="rgb24")
+        packed = rgb_array(packet.image, packet.color)
         try:
             color, depth = unpack_frame(packed)
         except DataError as exc:
@@ -289,6 +368,37 @@ class Record3DSource:
     def _skip(self, packet: Record3DPacket, why: str) -> None:
         self.counters.skipped += 1
         log.warning("record3d: frame %d skipped: %s", packet.index, why)
+
+
+def describe(error: Exception) -> str:
+    """A failed attempt in one line: a PhoneError says what went wrong; anything else (from aiortc) is named."""
+    return (
+        str(error)
+        if isinstance(error, PhoneError)
+        else f"unexpected {error.__class__.__name__} from the phone: {error}"
+    )
+
+
+@dataclass
+class Backoff:
+    """The wait before the next connection attempt. A busy phone (HTTP 403) is asked again every
+    `busy_probe_s`: it is free the moment its other receiver leaves. Any other failure waits
+    `retry_initial_s`, doubling up to `retry_max_s`; a connection that streamed starts over."""
+
+    config: LiveConfig
+    _next_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self._next_s = self.config.retry_initial_s
+
+    def after(self, error: Exception, streamed: bool) -> float:
+        """-> seconds to wait after an attempt that ended with `error`."""
+        if streamed:
+            self._next_s = self.config.retry_initial_s
+        if isinstance(error, PhoneBusy):
+            return self.config.busy_probe_s
+        delay, self._next_s = self._next_s, min(2 * self._next_s, self.config.retry_max_s)
+        return delay
 
 
 def halved_to(width: int, height: int, max_width: int) -> tuple[int, int]:

@@ -4,6 +4,7 @@ Each video frame is depth (left half) and colour (right half), pixel-registered.
 HSV hue of the left half with saturation and value 1: depth_m = DEPTH_RANGE_M x hue, hue in
 [0, 1). Invalid depth is painted red (hue 0, which also decodes near 3 m after the wrap).
 Intrinsics come from `/metadata` as a column-major 3x3 at the phone's original image size.
+The stream is YUV: its matrix and range decide the RGB, and so the hue and the depth.
 """
 
 from __future__ import annotations
@@ -11,9 +12,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import av
 import cv2
 import numpy as np
+from av.video.reformatter import ColorRange, Colorspace
 
+from pipeline.config import ColorEncoding
 from pipeline.errors import DataError
 
 DEPTH_RANGE_M = 3.0  # depth = 3.0 x hue
@@ -21,6 +25,11 @@ DEPTH_VALID_M = (0.1, 2.8)  # outside [min, max) the phone's depth is not truste
 MIN_CHROMA = 0.5  # hue is meaningless where max(RGB) - min(RGB) is small (codec smear, black borders)
 SEAM_MARGIN_PX = 4  # depth columns next to the colour half, mixed by the codec
 EDGE_RELATIVE_JUMP = 0.05  # a 3x3 depth range above this fraction of the depth is a discontinuity
+COLOR_ENCODINGS: dict[ColorEncoding, tuple[int, int]] = {  # -> (swscale matrix, AVColorRange)
+    "bt709_full": (Colorspace.ITU709, ColorRange.JPEG),
+    "bt601_limited": (Colorspace.ITU601, ColorRange.MPEG),
+}
+UNSIGNALLED_MATRICES = (0, 2, 3)  # AVColorSpace RGB, unspecified, reserved: the frame names no YUV matrix
 
 
 def encode_depth(depth: np.ndarray) -> np.ndarray:
@@ -94,6 +103,23 @@ def unpack_frame(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     half = width // 2
     depth = mask_unreliable_depth(decode_depth(packed[:, :half]))
     return np.ascontiguousarray(packed[:, half:]), depth
+
+
+def yuv_frame(rgb: np.ndarray, encoding: ColorEncoding) -> av.VideoFrame:
+    """[H, W, 3] uint8 RGB -> a yuv420p frame in `encoding`'s matrix and range (a sender's encoder input)."""
+    matrix, value_range = COLOR_ENCODINGS[encoding]
+    image = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+    return image.reformat(format="yuv420p", dst_colorspace=matrix, dst_color_range=value_range)
+
+
+def rgb_array(frame: av.VideoFrame, unsignalled: ColorEncoding) -> np.ndarray:
+    """A decoded frame -> [H, W, 3] uint8 RGB, by the matrix and range the frame signals, or by
+    `unsignalled`'s when it names no matrix."""
+    if frame.colorspace in UNSIGNALLED_MATRICES:
+        matrix, value_range = COLOR_ENCODINGS[unsignalled]
+    else:
+        matrix, value_range = frame.colorspace, frame.color_range
+    return frame.reformat(format="rgb24", src_colorspace=matrix, src_color_range=value_range).to_ndarray()
 
 
 def metadata_for(intrinsics: np.ndarray, width: int, height: int) -> dict[str, Any]:

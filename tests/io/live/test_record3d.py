@@ -22,13 +22,14 @@ from aiohttp import web
 from aiortc import RTCPeerConnection
 from live_helpers import PhoneThread, free_port, read_status, wait_for
 
-from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
+from pipeline.config import ColorEncoding, DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.errors import DataError
 from pipeline.io.datasets.base import Dataset
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.io.live.fake_record3d import FakePhone
 from pipeline.io.live.record3d import (
+    Backoff,
     PhoneBusy,
     PhoneUnreachable,
     ProtocolError,
@@ -46,7 +47,9 @@ from pipeline.io.live.record3d_format import (
     intrinsics_from_metadata,
     metadata_for,
     pack_frame,
+    rgb_array,
     unpack_frame,
+    yuv_frame,
 )
 
 FAST = LiveConfig(retry_initial_s=0.05, retry_max_s=0.2, connect_timeout_s=5.0, stall_timeout_s=1.0)
@@ -129,7 +132,8 @@ def test_malformed_intrinsics_are_rejected_with_a_reason(metadata: Any) -> None:
 
 
 def _packet(packed: np.ndarray, metadata: dict[str, Any], index: int = 0) -> Record3DPacket:
-    return Record3DPacket(index, 0.1 * index, av.VideoFrame.from_ndarray(packed, format="rgb24"), metadata)
+    image = av.VideoFrame.from_ndarray(packed, format="rgb24")
+    return Record3DPacket(index, 0.1 * index, image, metadata, "bt601_limited")  # RGB: no YUV matrix applies
 
 
 def test_the_decoder_keeps_one_working_size_when_the_stream_resizes(phone_dataset: Dataset) -> None:
@@ -138,7 +142,7 @@ def test_the_decoder_keeps_one_working_size_when_the_stream_resizes(phone_datase
     source = Record3DSource("http://phone", LiveConfig())
     first = source.decode(_packet(pack_frame(frame.color, frame.depth), meta))
     small = av.VideoFrame.from_ndarray(pack_frame(frame.color, frame.depth), format="rgb24").reformat(64, 24)
-    second = source.decode(Record3DPacket(1, 0.1, small, meta))
+    second = source.decode(Record3DPacket(1, 0.1, small, meta, "bt601_limited"))
     assert first is not None and second is not None
     assert second.color.shape == first.color.shape == (96, 128, 3)
     assert np.allclose(second.intrinsics, first.intrinsics)
@@ -175,20 +179,26 @@ async def _receive(
 
 
 @pytest.mark.parametrize(
-    ("codec", "audio", "answer_path", "median_m"),
-    [("H264", False, "/answer", 0.015), ("VP8", True, "/sendAnswer", 0.03)],  # bitrate adapts: loose bounds
+    ("codec", "color", "audio", "answer_path"),
+    [
+        ("H264", "bt601_limited", False, "/answer"),
+        ("VP8", "bt709_full", True, "/sendAnswer"),  # a browser-style sender, decoded by the default
+        ("VP8", "bt601_limited", False, "/answer"),  # decoded with live.vp8_color = "bt601_limited"
+    ],
 )
 @pytest.mark.live
 def test_loopback_stream_decodes_to_the_sent_frames(
-    phone_dataset: Dataset, codec: str, audio: bool, answer_path: str, median_m: float
+    phone_dataset: Dataset, codec: str, color: ColorEncoding, audio: bool, answer_path: str
 ) -> None:
-    """The real aiortc path: the fake phone (or a browser-style VP8 + audio sender) on 127.0.0.1."""
+    """The real aiortc path: the fake phone (or a browser-style VP8 + audio sender) on 127.0.0.1.
+    Neither codec signals its YUV matrix here; VP8 in either convention keeps H.264's depth bound."""
 
     async def main() -> None:
-        phone = FakePhone(phone_dataset, fps=30, codec=codec, audio=audio, answer_path=answer_path)
+        phone = FakePhone(phone_dataset, fps=30, codecs=(codec,), color=color, audio=audio, answer_path=answer_path)
         port = await phone.start("127.0.0.1", 0)
         try:
-            packets, source = await _receive(f"http://127.0.0.1:{port}", 8)
+            config = replace(FAST, vp8_color=color)
+            packets, source = await _receive(f"http://127.0.0.1:{port}", 8, config)
         finally:
             await phone.stop()
         assert source.counters.connections == 1
@@ -203,7 +213,7 @@ def test_loopback_stream_decodes_to_the_sent_frames(
             assert valid.mean() > 0.4  # of 0.76 sent valid (beyond 2.8 m is invalid); masks take edges
             errors.append(np.abs(frame.depth[valid] - sent.depth[valid]))
         error = np.concatenate(errors)
-        assert np.median(error) < median_m and np.percentile(error, 95) < 0.08
+        assert np.median(error) < 0.015 and np.percentile(error, 95) < 0.08  # bitrate adapts: loose bounds
 
     asyncio.run(main())
 
@@ -384,3 +394,166 @@ def test_the_daemon_stops_cleanly_while_waiting_for_an_absent_phone(tmp_path: Pa
     assert "cannot connect" in output and "nothing to save" in output
     (folder,) = tmp_path.glob("live_record3d_tiny-2*")  # a fresh, timestamped run folder; latest points at it
     assert (tmp_path / "latest").resolve() == folder.resolve()
+
+
+@pytest.mark.parametrize("sent", ["bt709_full", "bt601_limited"])
+def test_unsignalled_yuv_decodes_by_the_setting_and_signalled_yuv_by_its_own(sent: ColorEncoding) -> None:
+    """Colour errors are depth errors: decoding in the sender's convention keeps depth within
+    5 mm, the other convention is several times worse; a frame that names its matrix ignores
+    the setting."""
+    depth = np.tile(np.linspace(0.15, 2.7, 256, dtype=np.float32), (48, 1))
+    packed = pack_frame(np.full((48, 256, 3), 90, np.uint8), depth)
+    signalled = yuv_frame(packed, sent)
+    unsignalled = av.VideoFrame.from_ndarray(signalled.to_ndarray(), format="yuv420p")  # as VP8 decodes
+
+    def median_error(frame: av.VideoFrame, setting: ColorEncoding) -> float:
+        decoded = unpack_frame(rgb_array(frame, setting))[1]
+        valid = decoded > 0
+        assert valid.mean() > 0.8
+        return float(np.median(np.abs(decoded[valid] - depth[valid])))
+
+    other: ColorEncoding = "bt601_limited" if sent == "bt709_full" else "bt709_full"
+    assert (
+        median_error(unsignalled, sent) < 0.005 < 3 * median_error(unsignalled, sent) < median_error(unsignalled, other)
+    )
+    assert median_error(signalled, other) == median_error(unsignalled, sent)
+
+
+@pytest.mark.parametrize(("offered", "answered"), [(("VP8", "H264"), "H264"), (("VP8",), "VP8")])
+@pytest.mark.live
+def test_the_answer_takes_h264_whenever_offered_else_vp8(
+    phone_dataset: Dataset, offered: tuple[str, ...], answered: str
+) -> None:
+    async def main() -> None:
+        phone = FakePhone(phone_dataset, fps=30, loop=True, codecs=offered)
+        port = await phone.start("127.0.0.1", 0)
+        session = Record3DSession(f"http://127.0.0.1:{port}", FAST)
+        try:
+            await session.open()
+            assert session.codec == answered
+            assert session.color == ("bt601_limited" if answered == "H264" else FAST.vp8_color)
+            async with asyncio.timeout(30):
+                async for _ in session.frames():
+                    break
+        finally:
+            await session.close()
+            await phone.stop()
+
+    asyncio.run(main())
+
+
+HAND_WRITTEN_OFFER = """v=0
+o=- 1 1 IN IP4 127.0.0.1
+s=-
+t=0 0
+a=group:BUNDLE 0
+m=video 9 UDP/TLS/RTP/SAVPF 98 45
+c=IN IP4 127.0.0.1
+a=mid:0
+a=sendonly
+a=rtcp-mux
+a=rtpmap:98 VP9/90000
+a=rtpmap:45 AV1/90000
+a=ice-ufrag:abcd
+a=ice-pwd:abcdefghijklmnopqrstuvwx
+a=fingerprint:sha-256 {fingerprint}
+a=setup:actpass
+a=candidate:1 1 udp 2130706431 127.0.0.1 9 typ host
+""".replace("\n", "\r\n").format(fingerprint=":".join(["AB"] * 32))
+
+
+@pytest.mark.parametrize(
+    ("sdp", "message"),
+    [
+        (HAND_WRITTEN_OFFER, "no codec this receiver decodes (the offer lists video VP9, AV1; it takes H264, VP8)"),
+        (HAND_WRITTEN_OFFER.replace("98 VP9", "98 H264").split("a=candidate")[0], "no usable ICE candidate"),
+    ],
+)
+@pytest.mark.live
+def test_an_offer_without_a_usable_codec_or_candidate_is_one_retried_error(
+    sdp: str, message: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    async def metadata(request: web.Request) -> web.Response:
+        return web.json_response(GOOD_META)
+
+    async def offer(request: web.Request) -> web.Response:
+        return web.json_response({"type": "offer", "sdp": sdp})
+
+    async def main() -> None:
+        runner, url = await _serve_app([web.get("/metadata", metadata), web.get("/getOffer", offer)])
+        receiving = asyncio.create_task(_receive(url, 1, FAST))
+        try:
+            await _logged(caplog, "retrying", 3)
+        finally:
+            receiving.cancel()
+            await runner.cleanup()
+
+    with caplog.at_level(logging.INFO, "gsplatam"):
+        asyncio.run(main())
+    retries = [r.getMessage() for r in caplog.records if "retrying" in r.getMessage()]
+    assert all(message in m and "\n" not in m for m in retries[:3])
+    assert "Traceback" not in caplog.text and not any(r.exc_info for r in caplog.records)
+
+
+async def _logged(caplog: pytest.LogCaptureFixture, text: str, count: int) -> None:
+    """Until `count` log records hold `text` (the test's own timeout bounds it)."""
+    async with asyncio.timeout(30):
+        while sum(text in r.getMessage() for r in caplog.records) < count:
+            await asyncio.sleep(0.01)
+
+
+def test_a_busy_phone_is_probed_at_its_interval_and_other_failures_back_off() -> None:
+    config = LiveConfig(retry_initial_s=1.0, retry_max_s=4.0, busy_probe_s=0.5)
+    backoff = Backoff(config)
+    busy, gone = PhoneBusy("403"), PhoneUnreachable("no route")
+    delays = [backoff.after(error, streamed=False) for error in (gone, gone, busy, busy, gone, gone, gone)]
+    assert delays == [1.0, 2.0, 0.5, 0.5, 4.0, 4.0, 4.0]
+    assert backoff.after(gone, streamed=True) == 1.0
+    assert LiveConfig().stall_timeout_s >= 10 and LiveConfig().busy_probe_s <= 1.0
+
+
+@pytest.mark.live
+def test_the_receiver_reconnects_at_the_first_probe_after_a_busy_phone_frees(
+    phone_dataset: Dataset, caplog: pytest.LogCaptureFixture
+) -> None:
+    """While another receiver holds the phone, the source probes every busy_probe_s and says
+    it is waiting; once freed it connects at once (back-off alone would wait an hour here), and
+    reports `connected` only at the first frame."""
+    hour = 3600.0  # equal timeouts, as by default: the first frame must still count as the stage change
+    config = replace(
+        FAST, retry_initial_s=hour, retry_max_s=hour, busy_probe_s=0.02, stall_timeout_s=FAST.connect_timeout_s
+    )
+
+    async def main() -> None:
+        phone = FakePhone(phone_dataset, fps=30, loop=True)
+        port = await phone.start("127.0.0.1", 0)
+        url = f"http://127.0.0.1:{port}"
+        other = Record3DSession(url, FAST)
+        source = Record3DSource(url, config)
+        stages = []
+
+        async def leave_after_three_probes() -> None:
+            await _logged(caplog, "HTTP 403", 3)
+            stages.append((source.counters.stage, source.counters.connected))
+            await other.close()  # the phone is free
+
+        try:
+            await other.open()
+            leaving = asyncio.create_task(leave_after_three_probes())
+            async with asyncio.timeout(60):
+                async for _ in source:
+                    stages.append((source.counters.stage, source.counters.connected))
+                    break
+            await leaving
+        finally:
+            await other.close()
+            await phone.stop()
+        assert stages[0][1] is False and stages[0][0] in ("waiting", "signalling")
+        assert stages[1:] == [("streaming", True)]
+        assert source.counters.connections == 1 and "403" in source.counters.last_error
+
+    with caplog.at_level(logging.INFO, "gsplatam"):
+        asyncio.run(main())
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("403" in m and "retrying in 0.0 s" in m for m in messages) >= 3
+    assert any("ICE connected" in m for m in messages)

@@ -140,12 +140,13 @@ def small_phone_dataset(tmp_path_factory: pytest.TempPathFactory) -> Dataset:
 
 @pytest.mark.slow
 @pytest.mark.live
-def test_the_daemon_survives_every_malformed_reply_and_maps_every_frame_into_one_map(
+def test_the_daemon_survives_every_malformed_reply_and_maps_into_one_map(
     small_phone_dataset: Dataset, tmp_path: Path
 ) -> None:
     """Good streams of 2 frames with each bad reply between two of them: the daemon retries
-    every one, never dies, and its one map holds every frame it received (a queue long enough
-    that a slow CPU drops none; few iterations: the test is about the daemon, not the map)."""
+    every one, never dies, and every frame it received is either in its one map or counted as
+    dropped (a live daemon keeps only the newest frame: a slow CPU drops some; few iterations:
+    the test is about the daemon, not the map)."""
     faults = [Turn(kind) for kind in BAD_REPLIES] + [Turn("HTTP error", "/getOffer")]
     turns = [Turn()] + [t for fault in faults for t in (fault, Turn())]
     good = sum(t.fault is None for t in turns)
@@ -159,7 +160,7 @@ def test_the_daemon_survives_every_malformed_reply_and_maps_every_frame_into_one
         sys.executable, "-m", "pipeline", "serve", "--record3d", url, "--device", "cpu", "--preset", "tiny",
         "--output", str(tmp_path), "--name", "live", "--quiet", "--set", f"live.status_port={status_port}",
         "--set", "live.retry_initial_s=0.05", "--set", "live.retry_max_s=0.2", "--set", "live.stall_timeout_s=2",
-        "--set", "run.queue_size=64", "--set", "tracking.iters=2", "--set", "mapping.iters=2",
+        "--set", "tracking.iters=2", "--set", "mapping.iters=2",
     ]  # fmt: skip
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
@@ -167,7 +168,7 @@ def test_the_daemon_survives_every_malformed_reply_and_maps_every_frame_into_one
     def all_streamed() -> bool:
         status = read_status(status_port) or {}
         done = not address.turns and status.get("connections") == good and not status.get("connected")
-        return done and status.get("processed") == status["received"] - status["skipped"]
+        return done and status.get("processed", 0) + status.get("dropped", 0) == status["received"] - status["skipped"]
 
     try:
         wait_for(all_streamed, 180, f"{good} good streams and every bad reply", log_path)
@@ -181,9 +182,11 @@ def test_the_daemon_survives_every_malformed_reply_and_maps_every_frame_into_one
     assert code == 0, log_text[-3000:]
     metrics = json.loads((tmp_path / "live" / "metrics.json").read_text())
     counters = metrics["counters"]
-    assert counters["connections"] == good and metrics["runtime"]["queues"]["source"]["dropped"] == 0
+    dropped = sum(queue["dropped"] for queue in metrics["runtime"]["queues"].values())
+    assert counters["connections"] == good
     # 2 sent per stream; the last can stay in the receiver's jitter buffer when the phone hangs up
-    assert metrics["frames"] == counters["received"] - counters["skipped"] >= good
+    assert metrics["frames"] + dropped == counters["received"] - counters["skipped"] >= good
+    assert metrics["frames"] >= 1
     assert metrics["frames"] == len(_rows(tmp_path / "live" / "trajectory.txt"))
     for _, said in BAD_REPLIES.values():
         assert said in log_text, said
