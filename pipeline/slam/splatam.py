@@ -74,6 +74,7 @@ class SplaTAM:
             last_prior=None if mark.prior is None else mark.prior.cpu(),
             rng_state=back.rng.getstate(),
             generator_state=back.generator.get_state(),
+            lost_frames=[i for i, lost in enumerate(self.frontend.lost[: mark.poses_done]) if lost],
         )
 
     def restore(self, saved: Checkpoint) -> None:
@@ -81,6 +82,9 @@ class SplaTAM:
         dev, front, back = self.device, self.frontend, self.backend
         front.poses = list(saved.poses.to(dev))
         front.loss_history = list(saved.loss_history)
+        lost = set(saved.lost_frames)
+        front.lost = [i in lost for i in range(saved.frames_done)]
+        front.last_good = max(set(range(saved.frames_done)) - lost, default=-1)
         front.last_prior = None if saved.last_prior is None else saved.last_prior.to(dev)
         back.gaussians = copied(saved.gaussians, dev)
         back.keyframes = [
