@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from enum import Enum
 
 import torch
 
@@ -31,10 +32,18 @@ LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier 
 LOSS_HISTORY_MIN = 5
 
 
+class TrackingState(Enum):
+    """How a frame's pose came about."""
+
+    TRACKED = "tracked"  # from the prediction, judged sound
+    RELOCALISED = "relocalised"  # judged lost from the prediction, sound from a keyframe's pose
+    LOST = "lost"  # judged lost: the pose is kept but not trusted (nor mapped)
+
+
 @dataclass(frozen=True)
 class TrackerMark:
     """The tracking side's state just after one frame: a checkpoint cut there takes the first
-    `poses_done` poses (and lost flags) and `losses_done` loss-history entries, and the device
+    `poses_done` poses (and states) and `losses_done` loss-history entries, and the device
     pose of the last frame tracked well by then."""
 
     poses_done: int
@@ -71,6 +80,12 @@ class Attempt:
     verdict: Verdict
     keyframe: int | None = None  # the frame index of the keyframe it started from (relocalisation)
 
+    @property
+    def state(self) -> TrackingState:
+        if self.verdict.lost:
+            return TrackingState.LOST
+        return TrackingState.TRACKED if self.keyframe is None else TrackingState.RELOCALISED
+
 
 class TrackingFrontend:
     def __init__(self, tracker: Tracker, config: TrackingConfig, device: torch.device) -> None:
@@ -78,7 +93,7 @@ class TrackingFrontend:
         self.config = config
         self.device = device
         self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked
-        self.lost: list[bool] = []  # per frame tracked: judged lost
+        self.states: list[TrackingState] = []  # per frame tracked
         self.last_good = -1  # position in `poses` of the last frame not lost
         self.loss_history: list[float] = []
         self.last_prior: torch.Tensor | None = None  # [4, 4] the device's camera-to-world at `last_good`
@@ -119,12 +134,13 @@ class TrackingFrontend:
     def _initial_pose(self, frame: DeviceFrame) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last
         good frame applied to its estimate when the frames bring pose priors, else constant
-        velocity when the last two frames were both good, else the last good pose (after a loss
-        the velocity starts again from zero)."""
-        poses, good, prior = self.poses, self.last_good, self.last_prior
+        velocity when the last frame was tracked from its prediction and the one before it was
+        good too, else the last good pose (after a loss or a relocalisation the velocity starts
+        again from zero)."""
+        poses, good, prior, states = self.poses, self.last_good, self.last_prior, self.states
         if frame.c2w_prior is not None and prior is not None:
             return poses[good] @ invert_pose(prior) @ frame.c2w_prior
-        if good == len(poses) - 1 and good >= 1 and not self.lost[good - 1]:
+        if good == len(poses) - 1 >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
             return constant_velocity(poses[-2], poses[-1])
         return poses[good]
 
@@ -150,7 +166,7 @@ class TrackingFrontend:
         as dear as a tracked frame's: adam's `iters` renders and backward passes, align's render
         and solve, and its recovery attempt when the solve fails) and one host read each. A lost
         frame is not mapped, so the extra time replaces mapping's."""
-        attempt_in_row = len(self.lost) - 1 - self.last_good  # lost frames just before this one
+        attempt_in_row = len(self.states) - 1 - self.last_good  # lost frames just before this one
         best = lost
         for position in relocalisation_picks(len(keyframes), self.config.relocalise_candidates, attempt_in_row):
             keyframe = keyframes[position]
@@ -195,12 +211,11 @@ class TrackingFrontend:
 
     def _record(self, frame: DeviceFrame, attempt: Attempt, first: bool) -> None:
         """Carry the frame's pose, and the loss and device pose of a frame tracked well, to the next."""
-        lost = bool(attempt.verdict.lost)
         self.poses.append(attempt.c2w)
-        self.lost.append(lost)
+        self.states.append(attempt.state)
         if not first and math.isfinite(attempt.verdict.per_pixel):
             self.loss_history.append(attempt.verdict.per_pixel)
-        if not lost:
+        if attempt.state is not TrackingState.LOST:
             self.last_good = len(self.poses) - 1
             self.last_prior = frame.c2w_prior
 

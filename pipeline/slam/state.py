@@ -25,6 +25,7 @@ class Checkpoint:
     rng_state: tuple[Any, ...]  # random.Random.getstate(): mapping's view picks
     generator_state: torch.Tensor  # torch.Generator.get_state() (uint8): keyframe sampling
     lost_frames: list[int] = field(default_factory=list)  # positions in `poses` of the frames judged lost
+    relocalised_frames: list[int] = field(default_factory=list)  # and of those relocalised
 
     @property
     def frames_done(self) -> int:
