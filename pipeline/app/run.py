@@ -188,6 +188,7 @@ def _metrics(session: Session, dataset: Dataset) -> dict[str, Any]:
         "gaussians": len(slam.gaussians) if slam.gaussians is not None else 0,
         "lost_frames": sum(bool(r.lost) for r in sink.results),
         "weak_frames": sum(bool(r.warning) for r in sink.results),
+        "relocalised_frames": sum(r.relocalised_from is not None for r in sink.results),
         "unmapped_frames": sum(not r.mapped for r in sink.results),
         "schedule": config.slam.schedule,
         "device": describe(device, config),

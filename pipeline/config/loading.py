@@ -199,6 +199,7 @@ def validate(config: Config) -> None:
             "tracking.align_max_residual_m and align_max_intensity_rms must be > 0",
         ),
         (config.tracking.align_recovery_iters >= 0, "tracking.align_recovery_iters must be >= 0"),
+        (config.tracking.relocalise_candidates >= 0, "tracking.relocalise_candidates must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),
         (config.slam.max_lead >= 0, "slam.max_lead must be >= 0"),

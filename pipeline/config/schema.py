@@ -65,6 +65,7 @@ class TrackingConfig:
     silhouette_threshold: float = 0.99  # only pixels the map covers at least this much count in the loss
     lost_translation_m: float = 0.3  # a jump beyond this from the initial guess marks tracking lost
     lost_coverage: float = 0.05  # fewer pixels than this fraction above the threshold marks it lost
+    relocalise_candidates: int = 3  # keyframe poses a lost frame is tracked again from (0: no relocalisation)
     refine_iters: int = 0  # align: then this many of adam's iterations from the aligned pose
     align_iters: tuple[int, ...] = (10, 6, 4)  # align: iterations per pyramid level, coarse to fine (one level each)
     align_depth_sigma_m: float = 0.01  # align: Huber scale of the point-to-plane residual

@@ -113,7 +113,7 @@ class MappingBackend:
             ready = torch.cuda.Event()
             ready.record()
         number = 1 if self.latest is None else self.latest.number + 1
-        self.latest = MapVersion(number, self.gaussians, ready)
+        self.latest = MapVersion(number, self.gaussians, ready, tuple(self.keyframes))
 
     def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
         """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""

@@ -1,8 +1,12 @@
 """SLAM's tracking side: predict the pose, track it against a published map version, judge it.
 
-It holds what tracking carries from frame to frame (the estimated poses, the loss history that
-lost-tracking detection compares against, the last device pose) and hands each frame to mapping
-as a `TrackedFrame`, with the marks a checkpoint cut at that frame needs from this side.
+It holds what tracking carries from frame to frame (the estimated poses and which were lost, the
+loss history that lost-tracking detection compares against, the last good device pose) and hands
+each frame to mapping as a `TrackedFrame`, with the marks a checkpoint cut at that frame needs
+from this side.
+
+After a lost frame the next guess comes from the last frame tracked well (never from a lost
+pose), and a frame judged lost is tracked again from a few keyframes' poses (`_relocalise`).
 """
 
 from __future__ import annotations
@@ -10,12 +14,15 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from enum import Enum
 
 import torch
 
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
+from pipeline.render import Gaussians
+from pipeline.slam.keyframes import Keyframe, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.results import FrameResult
 from pipeline.slam.timing import StageClock
@@ -25,10 +32,19 @@ LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier 
 LOSS_HISTORY_MIN = 5
 
 
+class TrackingState(Enum):
+    """How a frame's pose came about."""
+
+    TRACKED = "tracked"  # from the prediction, judged sound
+    RELOCALISED = "relocalised"  # judged lost from the prediction, sound from a keyframe's pose
+    LOST = "lost"  # judged lost: the pose is kept but not trusted (nor mapped)
+
+
 @dataclass(frozen=True)
 class TrackerMark:
     """The tracking side's state just after one frame: a checkpoint cut there takes the first
-    `poses_done` poses and `losses_done` loss-history entries, and that frame's device pose."""
+    `poses_done` poses (and states) and `losses_done` loss-history entries, and the device
+    pose of the last frame tracked well by then."""
 
     poses_done: int
     losses_done: int
@@ -46,14 +62,41 @@ class TrackedFrame:
     ready: torch.cuda.Event | None  # recorded after tracking on its stream; None on the CPU
 
 
+@dataclass(frozen=True)
+class Verdict:
+    """A tracked pose judged on the host."""
+
+    per_pixel: float  # the tracking loss per tracked pixel
+    coverage: float  # fraction of valid-depth pixels tracked
+    lost: str  # why the pose is not to be trusted; empty when it is
+    warning: str  # why tracking looks weak though the pose is used (low map coverage)
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One run of the tracker on a frame, judged."""
+
+    c2w: torch.Tensor  # [4, 4] camera-to-world, on the device
+    verdict: Verdict
+    keyframe: int | None = None  # the frame index of the keyframe it started from (relocalisation)
+
+    @property
+    def state(self) -> TrackingState:
+        if self.verdict.lost:
+            return TrackingState.LOST
+        return TrackingState.TRACKED if self.keyframe is None else TrackingState.RELOCALISED
+
+
 class TrackingFrontend:
     def __init__(self, tracker: Tracker, config: TrackingConfig, device: torch.device) -> None:
         self.tracker = tracker
         self.config = config
         self.device = device
         self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked
+        self.states: list[TrackingState] = []  # per frame tracked
+        self.last_good = -1  # position in `poses` of the last frame not lost
         self.loss_history: list[float] = []
-        self.last_prior: torch.Tensor | None = None
+        self.last_prior: torch.Tensor | None = None  # [4, 4] the device's camera-to-world at `last_good`
         self.clock = StageClock(device)
 
     @property
@@ -62,41 +105,78 @@ class TrackingFrontend:
 
     def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackedFrame:
         """Frame t against the latest map version (None: the first frame, where the map starts:
-        its pose is the identity). Reads the frame's tracking scalars once, to judge it."""
+        its pose is the identity). Reads the frame's tracking scalars once per tracker run, to
+        judge it; a lost frame is relocalised (`_relocalise`)."""
         started = time.perf_counter()
         with self.clock.stage("tracking"):
-            failure = ""
             if latest is None:
-                c2w = c2w_init = torch.eye(4, device=self.device)
-                loss, coverage = torch.zeros((), device=self.device), torch.ones((), device=self.device)
+                c2w = torch.eye(4, device=self.device)
+                zero, one = torch.zeros((), device=self.device), torch.ones((), device=self.device)
+                attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
             else:
-                c2w_init = self._initial_pose(frame)
-                tracked = self.tracker(latest.for_current_stream(), frame, c2w_init)
-                c2w, loss, coverage = tracked.c2w.detach(), tracked.best_loss, tracked.coverage
-                failure = tracked.failure
-            self.poses.append(c2w)
-            self.last_prior = frame.c2w_prior
+                gaussians = latest.for_current_stream()
+                attempt = self._attempt(gaussians, frame, self._initial_pose(frame))
+                if attempt.verdict.lost and self.config.relocalise_candidates > 0:
+                    attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
+            self._record(frame, attempt, first=latest is None)
         ready = None
         if frame.depth.is_cuda:
             ready = torch.cuda.Event()
             ready.record()
-        result = self._judge(frame, c2w, c2w_init, loss, coverage, failure)
+        result = self._result(frame, attempt)
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
         if frame.received_at is not None:
             result.received_at = frame.received_at
             result.age_at_start_s = started - frame.received_at
         mark = TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
-        return TrackedFrame(frame, c2w, result, mark, ready)
+        return TrackedFrame(frame, attempt.c2w, result, mark, ready)
 
     def _initial_pose(self, frame: DeviceFrame) -> torch.Tensor:
-        """The device's own motion since the last frame applied to the last estimate when the
-        frame brings a pose prior, else constant velocity."""
-        poses, prior = self.poses, self.last_prior
+        """From the frames tracked well, never a lost one: the device's own motion since the last
+        good frame applied to its estimate when the frames bring pose priors, else constant
+        velocity when the last frame was tracked from its prediction and the one before it was
+        good too, else the last good pose (after a loss or a relocalisation the velocity starts
+        again from zero)."""
+        poses, good, prior, states = self.poses, self.last_good, self.last_prior, self.states
         if frame.c2w_prior is not None and prior is not None:
-            return poses[-1] @ invert_pose(prior) @ frame.c2w_prior
-        return poses[-1] if len(poses) < 2 else constant_velocity(poses[-2], poses[-1])
+            return poses[good] @ invert_pose(prior) @ frame.c2w_prior
+        if good == len(poses) - 1 >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
+            return constant_velocity(poses[-2], poses[-1])
+        return poses[good]
 
-    def _judge(
+    def _attempt(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, keyframe: int | None = None
+    ) -> Attempt:
+        """The configured tracker from camera-to-world `c2w_init` [4, 4], judged (one host read)."""
+        tracked = self.tracker(gaussians, frame, c2w_init)
+        c2w = tracked.c2w.detach()
+        verdict = self._verdict(frame, c2w, c2w_init, tracked.best_loss, tracked.coverage, tracked.failure)
+        return Attempt(c2w, verdict, keyframe)
+
+    def _relocalise(
+        self, gaussians: Gaussians, frame: DeviceFrame, keyframes: tuple[Keyframe, ...], lost: Attempt
+    ) -> Attempt:
+        """A frame judged lost from the usual guess (the last good pose, or the device's motion
+        from it), tracked again from the poses of at most `relocalise_candidates` keyframes,
+        spread over the store and a different set on each lost frame in a row
+        (`relocalisation_picks`). Of the attempts judged neither lost nor weak (map coverage at
+        least `lost_coverage`), the one of least loss per pixel; `lost` if there is none.
+
+        Cost, on lost frames only: up to `relocalise_candidates` more runs of the tracker (each
+        as dear as a tracked frame's: adam's `iters` renders and backward passes, align's render
+        and solve, and its recovery attempt when the solve fails) and one host read each. A lost
+        frame is not mapped, so the extra time replaces mapping's."""
+        attempt_in_row = len(self.states) - 1 - self.last_good  # lost frames just before this one
+        best = lost
+        for position in relocalisation_picks(len(keyframes), self.config.relocalise_candidates, attempt_in_row):
+            keyframe = keyframes[position]
+            attempt = self._attempt(gaussians, frame, keyframe.c2w, keyframe.index)
+            sound = not attempt.verdict.lost and not attempt.verdict.warning
+            if sound and (best.verdict.lost or attempt.verdict.per_pixel < best.verdict.per_pixel):
+                best = attempt
+        return best
+
+    def _verdict(
         self,
         frame: DeviceFrame,
         c2w: torch.Tensor,
@@ -104,16 +184,17 @@ class TrackingFrontend:
         loss: torch.Tensor,
         coverage: torch.Tensor,
         failure: str,
-    ) -> FrameResult:
-        """Read the frame's device scalars once and judge whether tracking held (`failure`: the
-        tracking method's own verdict, e.g. the alignment's solve)."""
+        first: bool = False,
+    ) -> Verdict:
+        """Read the tracker's device scalars once and judge whether tracking held (`failure`: the
+        tracking method's own verdict, e.g. the alignment's solve; `first`: the map's first frame)."""
         valid = float((frame.depth > 0).sum())
         cov = float(coverage)
         per_pixel = float(loss) / max(cov * valid, 1.0)
         jump = float(torch.linalg.norm(c2w[:3, 3] - c2w_init[:3, 3]))
-        history, tracked = self.loss_history, self.frames_done > 1
+        history = self.loss_history
         lost, warning = "", ""
-        if not math.isfinite(per_pixel) and tracked:
+        if not math.isfinite(per_pixel) and not first:
             lost = "tracking loss is not finite"
         elif failure:
             lost = failure
@@ -123,21 +204,37 @@ class TrackingFrontend:
             len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]
         ):
             lost = f"tracking loss {per_pixel:.4f} per pixel is over {LOSS_EXPLOSION_FACTOR:g}x its running median"
-        elif tracked and cov < self.config.lost_coverage:
+        elif not first and cov < self.config.lost_coverage:
             # Entering unmapped space looks like this too: the frame is mapped, so the map can grow there.
             warning = f"map covers only {cov:.0%} of the valid pixels"
-        if tracked and math.isfinite(per_pixel):
-            history.append(per_pixel)
+        return Verdict(per_pixel, cov, lost, warning)
+
+    def _record(self, frame: DeviceFrame, attempt: Attempt, first: bool) -> None:
+        """Carry the frame's pose, and the loss and device pose of a frame tracked well, to the next."""
+        self.poses.append(attempt.c2w)
+        self.states.append(attempt.state)
+        if not first and math.isfinite(attempt.verdict.per_pixel):
+            self.loss_history.append(attempt.verdict.per_pixel)
+        if attempt.state is not TrackingState.LOST:
+            self.last_good = len(self.poses) - 1
+            self.last_prior = frame.c2w_prior
+
+    def _result(self, frame: DeviceFrame, attempt: Attempt) -> FrameResult:
+        verdict = attempt.verdict
+        warning = verdict.warning
+        if attempt.keyframe is not None:
+            warning = f"relocalised from keyframe {attempt.keyframe}"
         return FrameResult(
             index=frame.index,
             timestamp=frame.timestamp,
-            c2w=c2w.cpu(),
+            c2w=attempt.c2w.cpu(),
             seconds={},
             gaussians=0,
             added=0,
-            tracking_loss=per_pixel,
-            coverage=cov,
-            lost=lost,
+            tracking_loss=verdict.per_pixel,
+            coverage=verdict.coverage,
+            lost=verdict.lost,
             warning=warning,
             c2w_gt=None if frame.c2w_gt is None else frame.c2w_gt.cpu(),
+            relocalised_from=attempt.keyframe,
         )

@@ -100,3 +100,15 @@ def most_redundant(c2w: torch.Tensor, protected_newest: int) -> int:
     cosine = (poses[1:, :3, 2] * poses[:-1, :3, 2]).sum(-1).clamp(-1.0, 1.0)
     distance = step + ROTATION_WEIGHT_M * torch.arccos(cosine)  # [K - 1]: keyframe i to i + 1
     return min(candidates, key=lambda i: float(distance[i]))
+
+
+def relocalisation_picks(count: int, candidates: int, attempt: int) -> list[int]:
+    """Positions (oldest first) of at most `candidates` of `count` keyframes whose poses the
+    `attempt`-th lost frame in a row (0 first) is tracked again from: every `stride`-th keyframe
+    (stride = ceil(count / candidates)) from position `attempt mod stride`. Each attempt spreads
+    over the whole store, the first includes the oldest keyframe (where the map began), and
+    `stride` lost frames in a row try every keyframe once."""
+    if count == 0 or candidates == 0:
+        return []
+    stride = -(-count // candidates)
+    return list(range(attempt % stride, count, stride))

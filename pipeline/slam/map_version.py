@@ -14,6 +14,7 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
+from pipeline.slam.keyframes import Keyframe
 
 
 @dataclass(frozen=True)
@@ -21,6 +22,7 @@ class MapVersion:
     number: int  # increases by one with every mapped frame
     gaussians: Gaussians  # detached; never modified after publishing
     ready: torch.cuda.Event | None  # recorded on mapping's stream when the version was complete
+    keyframes: tuple[Keyframe, ...] = ()  # the keyframe store as of this version (relocalisation's poses)
 
     def for_current_stream(self) -> Gaussians:
         """The Gaussians, safe to use on the calling thread's CUDA stream: it waits (on the GPU,

@@ -20,6 +20,7 @@ class FrameResult:
     lost: str = ""  # why the pose is not to be trusted (the frame is then not mapped); empty when it is
     c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
     warning: str = ""  # why tracking looked weak though its pose is used and mapped (low map coverage)
+    relocalised_from: int | None = None  # after a loss: the keyframe (frame index) whose pose tracking held from
     mapped: bool = True  # False: tracked only (lost, or skipped by a live session's mapping)
     map_version: int = 0  # the map version published after this frame (the latest one when not mapped)
     received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival

@@ -14,7 +14,7 @@ from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer, make_views_renderer
 from pipeline.slam.backend import MappingBackend
-from pipeline.slam.frontend import TrackerMark, TrackingFrontend
+from pipeline.slam.frontend import TrackerMark, TrackingFrontend, TrackingState
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.kernels import make_kernels
 from pipeline.slam.keyframes import Keyframe
@@ -74,13 +74,24 @@ class SplaTAM:
             last_prior=None if mark.prior is None else mark.prior.cpu(),
             rng_state=back.rng.getstate(),
             generator_state=back.generator.get_state(),
+            lost_frames=self._frames_in(TrackingState.LOST, mark.poses_done),
+            relocalised_frames=self._frames_in(TrackingState.RELOCALISED, mark.poses_done),
         )
+
+    def _frames_in(self, state: TrackingState, frames: int) -> list[int]:
+        """Positions of the first `frames` poses whose tracking ended in `state`."""
+        return [i for i, s in enumerate(self.frontend.states[:frames]) if s is state]
 
     def restore(self, saved: Checkpoint) -> None:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         dev, front, back = self.device, self.frontend, self.backend
         front.poses = list(saved.poses.to(dev))
         front.loss_history = list(saved.loss_history)
+        states = dict.fromkeys(range(saved.frames_done), TrackingState.TRACKED)
+        states |= dict.fromkeys(saved.relocalised_frames, TrackingState.RELOCALISED)
+        states |= dict.fromkeys(saved.lost_frames, TrackingState.LOST)
+        front.states = list(states.values())
+        front.last_good = max(set(range(saved.frames_done)) - set(saved.lost_frames), default=-1)
         front.last_prior = None if saved.last_prior is None else saved.last_prior.to(dev)
         back.gaussians = copied(saved.gaussians, dev)
         back.keyframes = [

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -24,6 +24,8 @@ class Checkpoint:
     last_prior: torch.Tensor | None  # [4, 4] camera-to-world
     rng_state: tuple[Any, ...]  # random.Random.getstate(): mapping's view picks
     generator_state: torch.Tensor  # torch.Generator.get_state() (uint8): keyframe sampling
+    lost_frames: list[int] = field(default_factory=list)  # positions in `poses` of the frames judged lost
+    relocalised_frames: list[int] = field(default_factory=list)  # and of those relocalised
 
     @property
     def frames_done(self) -> int:

@@ -81,7 +81,8 @@ class ResultSink:
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []  # host clock (s) at which each result reached the sink
         self.lost_frames = 0
-        self.weak_frames = 0  # tracked with a warning (low map coverage), still mapped
+        self.weak_frames = 0  # tracked with a warning (low map coverage, or relocalised), still mapped
+        self.relocalised_frames = 0  # tracked after a loss from a keyframe's pose
         self.unmapped_frames = 0  # tracked but not mapped: lost, or skipped by a live session's mapping
         self.bar = tqdm(
             total=total, initial=initial, unit="frame", desc="SLAM", disable=not progress, dynamic_ncols=True
@@ -110,6 +111,7 @@ class ResultSink:
             previous = self.results[-2] if len(self.results) > 1 else None
             if previous is None or not previous.warning:  # said once per run of weak frames
                 log.info("frame %d: tracking weak: %s", result.index, result.warning)
+        self.relocalised_frames += result.relocalised_from is not None
         self.unmapped_frames += not result.mapped
         due = self._ate_cm is None or self.arrivals[-1] - self._ate_at >= ATE_EVERY_S
         if result.c2w_gt is not None and not self.bar.disable and due:

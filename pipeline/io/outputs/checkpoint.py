@@ -52,6 +52,8 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
         "keyframe_indices": [k.index for k in checkpoint.keyframes],
         "scene_radius": checkpoint.scene_radius,
         "loss_history": checkpoint.loss_history,
+        "lost_frames": checkpoint.lost_frames,
+        "relocalised_frames": checkpoint.relocalised_frames,
         "rng_state": _json_rng_state(checkpoint.rng_state),
     }
     return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
@@ -95,6 +97,8 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         last_prior=tensors.get("last_prior"),
         rng_state=_rng_state_of(header["rng_state"]),
         generator_state=tensors["generator_state"],
+        lost_frames=[int(v) for v in header.get("lost_frames", [])],  # absent: written before they were kept
+        relocalised_frames=[int(v) for v in header.get("relocalised_frames", [])],
     )
     if checkpoint.frames_done != header["frames_done"]:
         raise ValueError(f"{checkpoint.frames_done} poses for {header['frames_done']} frames")
