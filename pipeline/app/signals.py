@@ -23,8 +23,13 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 @contextlib.contextmanager
 def signals_noted() -> Iterator[threading.Event]:
     """While inside, SIGINT/SIGTERM set the event yielded (and say so once); the handlers
-    before are restored on leaving. Main thread only, as every signal handler."""
+    before are restored on leaving. Signals reach the main thread only: elsewhere (a Ray
+    actor's method) nothing is installed and the event stays clear (its caller stops the
+    session by other means, app/remote_control.py)."""
     noted = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield noted
+        return
 
     def note(signum: int, frame: FrameType | None) -> None:
         if not noted.is_set():
