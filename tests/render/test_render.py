@@ -130,30 +130,33 @@ def test_gradients_match_finite_differences(name: str) -> None:
 @pytest.mark.slow
 def test_pose_only_optimisation_recovers_a_perturbed_camera() -> None:
     """Render a target from a known camera, start tracking 2 cm and ~1 degree away, recover it."""
-    # A dense surface: a textured slanted plane of isotropic Gaussians, as SLAM's map would be.
-    v, u = torch.meshgrid(torch.arange(0, 60, 1.0) + 0.5, torch.arange(0, 80, 1.0) + 0.5, indexing="ij")
-    z = 2.0 + 0.01 * u + 0.005 * v
-    means = torch.stack([(u - 40.5) / 100 * z, (v - 30.5) / 100 * z, z], -1).reshape(-1, 3)
+    # A dense surface: a textured slanted plane of isotropic Gaussians, as SLAM's map would be
+    # (40x30 pixels: a quarter of the pixels of the other tests keeps 150 iterations cheap).
+    k = torch.tensor([[50.0, 0.0, 20.5], [0.0, 50.0, 15.5], [0.0, 0.0, 1.0]])
+    v, u = torch.meshgrid(torch.arange(0, 30, 1.0) + 0.5, torch.arange(0, 40, 1.0) + 0.5, indexing="ij")
+    z = 2.0 + 0.02 * u + 0.01 * v
+    means = torch.stack([(u - 20.5) / 50 * z, (v - 15.5) / 50 * z, z], -1).reshape(-1, 3)
     n = len(means)
-    colors = 0.5 + 0.5 * torch.sin(torch.stack([u / 3, v / 4, (u + v) / 5], -1)).reshape(-1, 3)
+    colors = 0.5 + 0.5 * torch.sin(torch.stack([u / 1.5, v / 2, (u + v) / 2.5], -1)).reshape(-1, 3)
     quats = torch.zeros(n, 4)
     quats[:, 0] = 1
-    scene = Gaussians(means, quats, torch.log(z.reshape(-1, 1) / 100 * 1.5), torch.full((n,), 3.0), colors)
+    scene = Gaussians(means, quats, torch.log(z.reshape(-1, 1) / 50 * 1.5), torch.full((n,), 3.0), colors)
     renderer = make_renderer(RenderConfig(), GaussianConfig(), torch.device("cpu"))
     truth = torch.eye(4)
-    target = renderer(scene, Camera(invert_pose(truth), K, 80, 60))
-    frame = DeviceFrame(0, 0.0, target.color, torch.where(target.silhouette > 0.5, target.depth, 0.0), K, None)
+    target = renderer(scene, Camera(invert_pose(truth), k, 40, 30))
+    frame = DeviceFrame(0, 0.0, target.color, torch.where(target.silhouette > 0.5, target.depth, 0.0), k, None)
     angle = 0.015
     start = torch.eye(4)
     start[:3, :3] = quat_to_rotmat(torch.tensor([math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0]))
     start[:3, 3] = torch.tensor([0.012, -0.01, 0.01])
-    config = TrackingConfig(iters=150, lr_rotation=0.002, lr_translation=0.002, silhouette_threshold=0.9)
+    config = TrackingConfig(iters=100, lr_rotation=0.002, lr_translation=0.002, silhouette_threshold=0.9)
     result = track(scene, frame, start, TrackSettings(renderer, config, LossConfig(), 0.01, 100.0))
     error_t = torch.linalg.norm(result.c2w[:3, 3] - truth[:3, 3]).item()
     error_r = torch.arccos(((result.c2w[:3, :3].T @ truth[:3, :3]).trace() - 1) / 2).clamp(-1, 1).item()
     start_t = torch.linalg.norm(start[:3, 3]).item()
-    # The loss is summed over pixels inside the silhouette mask, so its minimum sits slightly off the
-    # truth (2.2 mm here, 1.8 mm on another CPU): the bound is 15% of the 1.9 cm start error.
+    # The loss is summed over pixels inside the silhouette mask, so its minimum can sit slightly off
+    # the truth (0.2 mm here; 1.8-2.2 mm on the larger plane this test used before): the bound is
+    # 15% of the 1.9 cm start error.
     assert error_t < 0.15 * start_t and error_t < 3e-3
     assert error_r < 0.1 * angle
 

@@ -254,14 +254,11 @@ def test_a_restarted_publisher_continues_the_stream(capture_dataset: Dataset, dd
 
 @pytest.mark.slow
 @pytest.mark.live
-@pytest.mark.parametrize("how", [["serve", "--nerfcapture"], ["run", "nerfcapture:"]])
-def test_live_reconstruction_from_the_fake_publisher(
-    capture_dataset: Dataset, tmp_path: Path, how, dds_domain: int
-) -> None:
+def test_live_reconstruction_from_the_fake_publisher(capture_dataset: Dataset, tmp_path: Path, dds_domain: int) -> None:
     status_port = free_port()
     log_path = tmp_path / "daemon.log"
     command = [
-        sys.executable, "-m", "pipeline", *how, "--device", "cpu", "--preset", "tiny",
+        sys.executable, "-m", "pipeline", "serve", "--nerfcapture", "--device", "cpu", "--preset", "tiny",
         "--output", str(tmp_path), "--name", "live", "--quiet", "--set", f"live.status_port={status_port}",
         "--set", f"live.dds_domain={dds_domain}", "--set", "live.record=true",
         # adam stays within millimetres of the phone's pose, so the raw error below checks the
@@ -302,10 +299,9 @@ def test_live_reconstruction_from_the_fake_publisher(
     recording = open_dataset(DatasetConfig(path=str(tmp_path / "live" / "recording")))  # live.record
     assert recording.format == "tum" and len(recording) >= metrics["frames"]
     assert all(ref.c2w_gt is not None for ref in recording.refs)  # the phone's poses, as groundtruth.txt
-    if how[0] == "serve":  # the recording re-runs offline
-        offline = ["run", str(tmp_path / "live" / "recording"), "--preset", "tiny", "--output", str(tmp_path)]
-        assert main([*offline, "--name", "offline", "--set", "dataset.end=3", "--quiet"]) == 0
-        assert json.loads((tmp_path / "offline" / "metrics.json").read_text())["ate"] is not None
+    offline = ["run", str(tmp_path / "live" / "recording"), "--preset", "tiny", "--output", str(tmp_path)]
+    assert main([*offline, "--name", "offline", "--set", "dataset.end=3", "--quiet"]) == 0  # it re-runs offline
+    assert json.loads((tmp_path / "offline" / "metrics.json").read_text())["ate"] is not None
 
 
 @pytest.mark.live
@@ -320,3 +316,22 @@ def test_no_publisher_is_said_clearly_and_waited_for(caplog, dds_domain: int) ->
 
     asyncio.run(main())
     assert f"waiting for a publisher on DDS domain {dds_domain}, topic 'Frames'" in caplog.text
+
+
+def test_run_with_a_nerfcapture_input_is_the_live_daemon(monkeypatch, tmp_path: Path, dds_domain: int) -> None:
+    """`run nerfcapture:` takes the daemon's path (the live source, the live preset, serve's
+    run folder) with the DDS domain of its settings; the daemon itself is tested above."""
+    import pipeline.app.serve as serve_module
+
+    calls = []
+
+    def fake_serve(config, source, progress, overwrite):  # type: ignore[no-untyped-def]
+        calls.append((config, source, overwrite))
+        return serve_module.ServeResult(None, None)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(serve_module, "serve", fake_serve)
+    argv = ["run", "nerfcapture:", "--device", "cpu", "--output", str(tmp_path), "--quiet"]
+    assert main([*argv, "--set", f"live.dds_domain={dds_domain}", "--overwrite"]) == 0
+    ((config, source, overwrite),) = calls
+    assert isinstance(source, NeRFCaptureSource) and source.domain_id == dds_domain
+    assert config.preset == "tiny" and overwrite

@@ -291,6 +291,7 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser
         page.screenshot(path=str(ARTIFACTS / "viewer-run.png"))
         page.get_by_text("Stop").click()
         assert run.wait(timeout=120) == 0, log_path.read_text()[-3000:]
+        page.close()  # its viewer is gone: left open, it keeps reconnecting and slows the next page
     finally:
         if run.poll() is None:
             run.send_signal(signal.SIGINT)
