@@ -461,7 +461,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _configure_logging(args)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
+    # SIGINT too, even where the process started with it ignored (a job a shell put in the
+    # background): a command given SIGINT stops as the README says, whoever started it.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with logging_redirect_tqdm():  # log lines go above the progress bars, never through them
             return COMMANDS[args.command](args)

@@ -176,8 +176,12 @@ def test_a_local_cluster_is_started_deaf_to_a_terminal_interrupt() -> None:
     from pipeline.app.ray_cluster import _interrupts_ignored_by_children
 
     probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"]
-    with _interrupts_ignored_by_children():
-        inside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
-    outside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a driver has it (pytest may not)
+    try:
+        with _interrupts_ignored_by_children():
+            inside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+        outside = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert (inside, outside) == ("True", "False")
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -362,3 +362,28 @@ def test_the_web_viewer_takes_a_frame_a_save_and_the_summary_without_a_browser()
         assert viewer.stopped.is_set()
     finally:
         viewer.close()
+
+
+def test_sigint_stops_a_command_started_with_sigint_ignored(tmp_path: Path) -> None:
+    """A shell's background job starts with SIGINT ignored; the command still stops on it, as
+    the README promises (here `view`, which waits for Ctrl-C)."""
+    from pipeline.io.outputs.ply import write_ply
+
+    one = Gaussians(
+        torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.zeros(1, 1), torch.zeros(1), torch.zeros(1, 3)
+    )
+    write_ply(tmp_path / "map.ply", one)
+    log_path = tmp_path / "view.log"
+    with open(log_path, "w") as log_file:
+        viewing = subprocess.Popen(
+            [sys.executable, "-m", "pipeline", "view", str(tmp_path / "map.ply"), "--viewer-port", str(free_port())],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        )
+    try:
+        wait_for(lambda: "showing" in log_path.read_text(), 60, "the view command", log_path)
+        viewing.send_signal(signal.SIGINT)
+        assert viewing.wait(timeout=30) == 0, log_path.read_text()[-3000:]
+    finally:
+        viewing.kill()
