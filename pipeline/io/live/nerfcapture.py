@@ -244,8 +244,9 @@ class NeRFCaptureSource:
     def decode(self, packet: NeRFCapturePacket) -> Frame | None:
         """-> the frame, or None when it has no valid depth (counted as skipped)."""
         s = packet.sample
-        # sequences arrive as lists of ints from DDS (bytes when built locally); bytes() takes both
-        color = np.frombuffer(bytes(s.image), np.uint8).reshape(s.height, s.width, 3)
+        # sequences arrive as lists of ints from DDS (bytes when built locally); bytearray() takes
+        # both, and gives the frame a writable buffer (tensors made from it may be written)
+        color = np.frombuffer(bytearray(s.image), np.uint8).reshape(s.height, s.width, 3)
         raw = np.frombuffer(bytes(s.depth_image), np.float32).reshape(s.depth_height, s.depth_width)
         depth: np.ndarray = np.where(np.isfinite(raw) & (raw > 0), raw, 0.0).astype(np.float32)
         if not (depth > 0).any():
