@@ -84,7 +84,7 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "relocalised_frames": sink.relocalised_frames,
             "unmapped_frames": sink.unmapped_frames,
             "last_frame_ms": 1000 * last.seconds["total"] if last else None,
-            "seconds_since_last_frame": time.perf_counter() - arrivals[-1] if arrivals else None,
+            "seconds_since_last_frame": _seconds_since_last_frame(sink),
             "ate_rmse_cm": ate_so_far_cm(results),
             "gpu_memory_gb": _gpu_memory_gb(session.device),
             "save_error": session.saver.error or None,
@@ -92,6 +92,10 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
         }
 
     return read
+
+
+def _seconds_since_last_frame(sink: ResultSink) -> float | None:
+    return time.perf_counter() - sink.arrivals[-1] if sink.arrivals else None
 
 
 def _gpu_memory_gb(device: torch.device) -> float | None:
@@ -117,13 +121,22 @@ def with_live_bounds(config: Config) -> Config:
     return config
 
 
-async def status_on_bar(sink: ResultSink, read: Callable[[], dict[str, Any]], stop: asyncio.Event) -> None:
-    """A runtime service: the daemon's counters on the progress bar, every BAR_EVERY_S, until `stop`."""
+def bar_counters(session: Session, graph: Graph) -> dict[str, Any]:
+    """What the progress bar adds for a daemon: frames received, processed and dropped, and the
+    age of the last result (a few attribute reads: no percentiles, no ATE)."""
+    age = _seconds_since_last_frame(session.sink)
+    return {
+        "received": session.source.counters.received,
+        "processed": len(session.sink.results),
+        "dropped": sum(graph.dropped().values()),
+        "age": "-" if age is None else f"{age:.1f}s",
+    }
+
+
+async def status_on_bar(sink: ResultSink, counters: Callable[[], dict[str, Any]], stop: asyncio.Event) -> None:
+    """A runtime service: `counters` on the progress bar, every BAR_EVERY_S, until `stop`."""
     while not stop.is_set():
-        status = read()
-        age = status["seconds_since_last_frame"]
-        fields = {k: status[k] for k in ("received", "processed", "dropped")}
-        sink.show(fields | {"age": "-" if age is None else f"{age:.1f}s"})
+        sink.show(counters())
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
 
@@ -155,7 +168,8 @@ def serve(
 
         def add_status(graph: Graph) -> None:
             read = status_reader(session, graph)
-            graph.services.append(partial(status_on_bar, session.sink, read))
+            if progress:
+                graph.services.append(partial(status_on_bar, session.sink, partial(bar_counters, session, graph)))
             if config.live.status_port:
                 graph.services.append(partial(serve_status, config.live.status_host, config.live.status_port, read))
             if control is not None:

@@ -57,3 +57,17 @@ def test_a_full_disk_is_reported_once_slam_goes_on_and_the_last_complete_save_st
     assert status["processed"] == 6  # SLAM went on
     folder = RunFolder(tmp_path / "live")
     assert folder.read_checkpoint()[0].frames_done == 1 and len(folder.frames_csv.read_text().splitlines()) == 7
+
+
+def test_the_bar_shows_the_daemons_counters_without_computing_the_status() -> None:
+    """The progress bar's counters, refreshed every second, are read from the source, the sink
+    and the queues directly (the full status computes percentiles and the ATE over all frames)."""
+    from types import SimpleNamespace
+
+    from pipeline.source import SourceCounters
+
+    sink = SimpleNamespace(results=[object()] * 3, arrivals=[])
+    session = SimpleNamespace(source=SimpleNamespace(counters=SourceCounters(received=7)), sink=sink)
+    graph = SimpleNamespace(dropped=lambda: {"source": 2, "uploaded": 1})
+    counters = serve_module.bar_counters(session, graph)  # type: ignore[arg-type]
+    assert counters == {"received": 7, "processed": 3, "dropped": 3, "age": "-"}
