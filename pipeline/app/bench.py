@@ -148,7 +148,7 @@ def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
     """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
-    ok_defaults = (r for r in rows if r["variant"] == "default" and r.get("repeat", 0) == 0 and not r["error"])
+    ok_defaults = (r for r in rows if r["variant"] == "default" and r["repeat"] == 0 and not r["error"])
     defaults = {(r["sequence"], r["preset"]): r for r in ok_defaults}
     for row in rows:
         base = defaults.get((row["sequence"], row["preset"]))
