@@ -231,12 +231,18 @@ def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
     return _finish_report(graph, "sync", time.perf_counter() - start, stop.is_set(), list(stats.values()))
 
 
+def catchable_signals() -> tuple[signal.Signals, ...]:
+    """SIGINT and SIGTERM where this thread may handle them: the main thread only (Python's
+    rule); none elsewhere (a Ray actor's method), whose caller stops the run by other means."""
+    return (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
+
+
 def execute(graph: Graph, loader: str) -> RuntimeReport:
     """Run the graph with SIGINT/SIGTERM handled: the current frame finishes, the run ends cleanly.
     The handlers in place before are back afterwards. Signals reach the main thread only: run in
     another thread (a Ray actor's method), the graph is stopped by one of its services instead
     (app/remote_control.py)."""
-    signals = (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
+    signals = catchable_signals()
     if loader == "sync":
         stop = threading.Event()
         previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in signals}

@@ -15,9 +15,9 @@ import threading
 from collections.abc import Iterator
 from types import FrameType
 
-log = logging.getLogger("gsplatam")
+from pipeline.runtime import catchable_signals
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+log = logging.getLogger("gsplatam")
 
 
 @contextlib.contextmanager
@@ -27,16 +27,13 @@ def signals_noted() -> Iterator[threading.Event]:
     actor's method) nothing is installed and the event stays clear (its caller stops the
     session by other means, app/remote_control.py)."""
     noted = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield noted
-        return
 
     def note(signum: int, frame: FrameType | None) -> None:
         if not noted.is_set():
             log.info("%s: stopping once the outputs are written", signal.Signals(signum).name)
         noted.set()
 
-    previous = {sig: signal.signal(sig, note) for sig in SIGNALS}
+    previous = {sig: signal.signal(sig, note) for sig in catchable_signals()}
     try:
         yield noted
     finally:
