@@ -11,6 +11,7 @@ EXTRA_OF_MODULE = {
     "cyclonedds": "live",
     "viser": "viewer",
     "open3d": "mesh",
+    "ray": "cluster",
 }
 
 

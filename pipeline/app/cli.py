@@ -280,7 +280,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
         _check_folders(args.sequences)  # on a cluster only the nodes need to see them: a cell reports it
         report = run_matrix(cells, args.overrides, Path(args.runs), not args.quiet, args.profile)
     else:
-        _require_ray()
         from pipeline.app.ray_bench import run_matrix_on_ray
 
         report = run_matrix_on_ray(
@@ -301,13 +300,6 @@ def _check_folders(sequences: list[str]) -> None:
     missing = [s for s in sequences if s not in SYNTHETIC_SEQUENCES and not Path(s).is_dir()]
     if missing:
         raise UserError(f"dataset folder not found: {missing[0]}")
-
-
-def _require_ray() -> None:
-    import importlib.util
-
-    if importlib.util.find_spec("ray") is None:
-        raise UserError("--ray needs Ray: pip install 'gsplatam[cluster]'")
 
 
 LIVE_SCHEMES = ("record3d:", "nerfcapture:")  # `run record3d:http://PHONE` / `run nerfcapture:`: no recording
@@ -333,7 +325,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise UserError("serve needs a source: --record3d URL or --nerfcapture")
     config = _config_from(args)
     if args.ray is not None:
-        _require_ray()
         from pipeline.app.ray_serve import serve_on_ray
 
         return serve_on_ray(specs, config, args.ray or None, args.gpus_per_session)

@@ -39,6 +39,7 @@ def _gsplatam_without_extras(*argv: str) -> subprocess.CompletedProcess[str]:
         (["serve", "--record3d", "http://127.0.0.1:9"], "live"),
         (["run", "SEQUENCE", "--viewer", "--set", "dataset.end=1", "--output", "OUT"], "viewer"),
         (["view", "MAP"], "viewer"),
+        (["bench", "--ray", "--presets", "tiny", "--out", "OUT"], "cluster"),
     ],
 )
 def test_a_missing_extra_is_one_line_naming_its_pip_command(
