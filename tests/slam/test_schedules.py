@@ -59,8 +59,9 @@ def _run_graph(slam: SplaTAM, source: DatasetSource, overlapped: bool, live: boo
 def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(replica_seq: Path) -> None:
     """The sequential schedule is SplaTAM.step frame after frame, bit for bit; and it reproduces
     the run recorded before tracking and mapping were split (tests/data/sequential_reference.json,
-    same settings, SplaTAM's tracker; bit for bit on the machine that recorded it, compared here to 1e-6 since
-    another CPU may round differently)."""
+    same settings, SplaTAM's tracker; re-recorded when the reference renderer went to 8x8 tiles, the
+    file says by how much it moved; bit for bit on the machine that recorded it, compared here to 1e-6
+    since another CPU may round differently)."""
     dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
     plain = _slam(["tracking.method=adam"])  # the recorded run's tracker
     for frame in dataset.frames():
