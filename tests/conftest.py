@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import os
 import random
 import socket
 from collections.abc import Iterator
@@ -12,7 +13,11 @@ import torch
 from pipeline.config import SyntheticConfig
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 
-torch.set_num_threads(2)
+if os.environ.get("PYTEST_XDIST_WORKER"):  # one of two workers on two cores: one thread each,
+    os.environ["OMP_NUM_THREADS"] = "1"  # and for the commands a test starts
+    torch.set_num_threads(1)
+else:
+    torch.set_num_threads(2)
 
 ROOT = Path(__file__).resolve().parents[1]  # the checkout
 SHARED_TUM = ROOT.parent / "shared" / "data" / "tum_fr1_xyz_37"
@@ -38,6 +43,11 @@ def tum_sample() -> Path:
     if not (SHARED_TUM / "rgb.txt").exists():
         pytest.skip(f"the shared TUM sample is absent ({SHARED_TUM})")
     return SHARED_TUM
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Whole runs and live peers first: a worker handed a long test last keeps the other waiting."""
+    items.sort(key=lambda item: (item.get_closest_marker("slow") is None, item.get_closest_marker("live") is None))
 
 
 DOMAIN_LOCK_PORT = 47000  # + domain id: a TCP port on loopback held while a test uses that DDS domain

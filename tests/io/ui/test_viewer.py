@@ -274,7 +274,7 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser
     command = [
         sys.executable, "-m", "pipeline", "run", "--device", "cpu", "--preset", "tiny", "--output", str(tmp_path),
         "--name", "viewed", "--quiet", "--viewer", "--viewer-port", str(port),
-        "--set", "synthetic.width=64", "--set", "synthetic.height=48", "--set", "synthetic.frames=200",
+        "--set", "synthetic.width=64", "--set", "synthetic.height=48", "--set", "synthetic.frames=100",
     ]  # fmt: skip
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log_file:
