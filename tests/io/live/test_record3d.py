@@ -330,6 +330,7 @@ def test_daemon_reconstructs_from_the_fake_phone_and_survives_a_reconnect(
         "--preset", "tiny", "--output", str(tmp_path), "--name", "live", "--quiet",
         "--set", f"live.status_port={status_port}", "--set", "live.retry_initial_s=0.2",
         "--set", "live.stall_timeout_s=2", "--set", "live.save_every_s=1",
+        "--set", "mapping.iters=2",  # the reconnection is the point, not the map
     ]  # fmt: skip
     with open(log_path, "w") as log_file:
         daemon = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env={**os.environ})
