@@ -2,8 +2,9 @@
 
 Same maths as gsplat 1.5: EWA projection with the eps2d dilation and the clamped Jacobian,
 an opacity-aware 3.33-sigma box, per-tile depth order, and front-to-back compositing with
-alpha = min(0.999, opacity x exp(-power)), alphas under 1/255 skipped and a pixel finished once its transmittance would fall to 1e-4. Gradients come from autograd.
-It runs on any device and is the oracle for the CUDA backend.
+alpha = min(0.999, opacity x exp(-power)), alphas under 1/255 skipped and a pixel finished once
+its transmittance would fall to 1e-4. Gradients come from autograd. It runs on any device and
+is the oracle for the CUDA backend.
 
 Its tiles are 8x8 where gsplat's are 16x16: a tile only decides which Gaussians its pixels
 consider, and a pixel ignores a Gaussian whose box misses its tile, so the image is the same
@@ -24,6 +25,7 @@ from pipeline.render.types import Camera, Gaussians, RenderOutput
 TILE = 8
 ALPHA_MAX = 0.999
 CHUNK_ELEMENTS = 1 << 22  # tile x pixel x Gaussian elements per compositing chunk
+REACH_MARGIN = 1e-4  # power units: `_contributors` keeps a superset of what `_alphas` keeps
 
 
 @dataclass(frozen=True)
@@ -128,22 +130,30 @@ def _alphas(rows: torch.Tensor, pix: torch.Tensor, valid: torch.Tensor, alpha_mi
 
 
 @torch.no_grad()
-def _contributors(table: torch.Tensor, ids: torch.Tensor, pix: torch.Tensor, alpha_min: float) -> torch.Tensor:
+def _reach_table(proj: dict[str, torch.Tensor], alpha_min: float) -> torch.Tensor:
+    """Per Gaussian, what `_contributors` tests: [6, N] rows mean x, mean y, conic a, b, c and
+    the largest power at which its alpha still reaches alpha_min, log(opacity / alpha_min)."""
+    reach = torch.log(proj["opacities"] / alpha_min) + REACH_MARGIN
+    return torch.cat([proj["means2d"], proj["conics"], reach[:, None]], -1).T.contiguous()
+
+
+@torch.no_grad()
+def _contributors(reach_table: torch.Tensor, ids: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
     """The ids, in depth order, of the Gaussians each pixel may not skip, padded with -1.
 
-    ids [c, K] a chunk of tile lists, pix [c, P, 2] -> [c, P, K'] with K' the most any pixel
-    keeps. A pixel skips most of its tile's list (alpha under 1/255: at 64x48 it keeps about
-    one in seven), and a skipped Gaussian multiplies the transmittance by exactly 1, so
-    compositing only the kept ones gives the same image for a fraction of the work. The test
-    here, power <= log(opacity / alpha_min) with a margin, keeps a superset of what `_alphas`
-    keeps (it decides exactly), without an exponential per pixel and Gaussian.
+    reach_table [6, N] (`_reach_table`), ids [c, K] a chunk of tile lists, pix [c, P, 2] ->
+    [c, P, K'] with K' the most any pixel keeps. A pixel skips most of its tile's list (alpha
+    under 1/255: at 64x48 it keeps about one in seven), and a skipped Gaussian multiplies the
+    transmittance by exactly 1, so compositing only the kept ones gives the same image for a
+    fraction of the work. The test here, power <= log(opacity / alpha_min) with a margin, keeps
+    a superset of what `_alphas` keeps (it decides exactly), without an exponential per pixel
+    and Gaussian.
     """
-    mean_x, mean_y, conic_a, conic_b, conic_c, opacity = table[:, :6].T.contiguous()[:, ids.clamp(min=0)]  # [c, K]
+    mean_x, mean_y, conic_a, conic_b, conic_c, reach = reach_table[:, ids.clamp(min=0)]  # each [c, K]
     dx = mean_x[:, None, :] - pix[..., 0, None]  # [c, P, K]
     dy = mean_y[:, None, :] - pix[..., 1, None]
     power = 0.5 * (conic_a[:, None, :] * dx * dx + conic_c[:, None, :] * dy * dy) + conic_b[:, None, :] * dx * dy
-    reach = torch.where(ids >= 0, torch.log(opacity / alpha_min) + 1e-4, -1.0)
-    used = power <= reach[:, None, :]
+    used = power <= torch.where(ids >= 0, reach, -1.0)[:, None, :]
     counts = used.sum(-1).flatten()  # per pixel
     chunk, pixel, listed = used.nonzero(as_tuple=True)
     first = torch.cumsum(counts, 0) - counts
@@ -172,13 +182,14 @@ def composite(
     # order, where indexing's (index_put with accumulate) adds in parallel, in any order, once it
     # exceeds 32k elements, which makes two identical runs differ in the last bit.
     table = torch.cat([proj["means2d"], proj["conics"], proj["opacities"][:, None], features], -1)
+    reach_table = _reach_table(proj, cutoffs.alpha_min)
     out_f, out_a = [], []
     for start in range(0, n_tiles, chunk):
         ids = lists[start : start + chunk]  # [c, K]
         tile_idx = torch.arange(start, start + len(ids), device=device)
         origin = torch.stack([tile_idx % tiles_x, tile_idx // tiles_x], -1).to(features.dtype) * TILE
         pix = origin[:, None, :] + offsets[None]  # [c, P, 2]
-        kept = _contributors(table, ids, pix, cutoffs.alpha_min)  # [c, P, K']
+        kept = _contributors(reach_table, ids, pix)  # [c, P, K']
         rows = table.index_select(0, kept.clamp(min=0).reshape(-1)).view(*kept.shape, -1)  # [c, P, K', D]
         alpha = _alphas(rows, pix, kept >= 0, cutoffs.alpha_min)
         transmit = torch.cumprod(1 - alpha, dim=-1)  # after each Gaussian

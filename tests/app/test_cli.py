@@ -256,5 +256,5 @@ def test_stage_times_merge_the_host_and_device_rows_of_a_range() -> None:
         SimpleNamespace(key="mapping", count=60, cpu_time_total=0.0, device_time_total=3_998_000.0),
         SimpleNamespace(key="aten::add", count=9, cpu_time_total=1.0, device_time_total=1.0),
     ]
-    times = stage_times(rows)  # type: ignore[arg-type]
+    times = stage_times(rows)
     assert times == {"mapping": {"count": 60, "cpu_ms": 4187.0, "device_ms": 3998.0}}
