@@ -88,6 +88,7 @@ class ViewerFeed:
         self.render = render
         self.period_s = 1.0 / max_hz
         self.released = threading.Event()  # set when the run stops: pausing is over
+        self._saves: list[threading.Thread] = []  # "Save map now" writes, joined by close()
         self.snapshots = 0
         self._handoff: queue.Queue[Snapshot | None] = queue.Queue(maxsize=1)
         self._last = -float("inf")
@@ -109,7 +110,9 @@ class ViewerFeed:
         if self.viewer.save_requested.is_set() and slam.gaussians is not None:
             self.viewer.save_requested.clear()
             host = copied(slam.gaussians, "cpu")
-            threading.Thread(target=self._save, args=(host,), name="viewer-save").start()
+            save = threading.Thread(target=self._save, args=(host,), name="viewer-save")
+            save.start()
+            self._saves = [t for t in self._saves if t.is_alive()] + [save]
         if now - self._last < self.period_s or self._handoff.full() or slam.gaussians is None:
             return
         if not self.viewer.clients():
@@ -231,7 +234,8 @@ class ViewerFeed:
         )
 
     def close(self) -> None:
-        """Stop the viewer thread after the update in progress, then the viewer; safe twice."""
+        """Stop the viewer thread after the update in progress, let requested saves finish and
+        confirm in the page, then close the viewer; safe twice."""
         if not self._thread.is_alive():
             return
         self.released.set()
@@ -239,6 +243,8 @@ class ViewerFeed:
             self._handoff.get_nowait()  # a snapshot not yet shown is dropped
         self._handoff.put(None)
         self._thread.join(timeout=30)
+        for save in self._saves:
+            save.join()  # a map the user asked for is never lost to the shutdown
         self.viewer.close()
 
 
