@@ -258,9 +258,15 @@ def _frame_number(page) -> int | None:
 
 
 def _canvas_is_drawn(page, path: Path) -> bool:
-    page.locator("canvas").first.screenshot(path=str(path))
+    """Whether the 3D canvas shows something, from one screenshot of the page kept at `path`
+    (software WebGL makes each screenshot cost seconds)."""
+    box = page.locator("canvas").first.bounding_box()
+    page.screenshot(path=str(path))
     image = cv2.imread(str(path))
-    return image is not None and float(image.std()) > 5.0
+    if image is None or box is None:
+        return False
+    x, y, w, h = (round(box[k]) for k in ("x", "y", "width", "height"))
+    return float(image[y : y + h, x : x + w].std()) > 5.0
 
 
 @pytest.mark.slow
@@ -277,15 +283,14 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser
     with open(log_path, "w") as log_file:
         run = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT)
     try:
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page = browser.new_page(viewport={"width": 960, "height": 600})
         wait_for(lambda: "viewer:" in log_path.read_text(), 120, "the viewer to start", log_path)
         page.goto(f"http://127.0.0.1:{port}", timeout=60_000)
         page.wait_for_selector("canvas", timeout=60_000)
         wait_for(lambda: (_frame_number(page) or 0) >= 2, 120, "frame 2 in the page", log_path)
         first = _frame_number(page)
         wait_for(lambda: (_frame_number(page) or 0) > (first or 0), 60, "the frame counter to advance", log_path)
-        wait_for(lambda: _canvas_is_drawn(page, tmp_path / "canvas.png"), 30, "splats on the canvas", log_path)
-        page.screenshot(path=str(ARTIFACTS / "viewer-run.png"))
+        wait_for(lambda: _canvas_is_drawn(page, ARTIFACTS / "viewer-run.png"), 30, "splats on the canvas", log_path)
         page.get_by_text("Stop").click()
         assert run.wait(timeout=120) == 0, log_path.read_text()[-3000:]
         page.close()  # its viewer is gone: left open, it keeps reconnecting and slows the next page
@@ -306,11 +311,10 @@ def test_the_viewer_in_headless_chromium_follows_a_run_and_shows_its_map(browser
         )
     try:
         wait_for(lambda: "showing" in view_log.read_text(), 60, "the view command", view_log)
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page = browser.new_page(viewport={"width": 960, "height": 600})
         page.goto(f"http://127.0.0.1:{port}", timeout=60_000)
         wait_for(lambda: "Gaussians from" in page.inner_text("body"), 60, "the map's stats", view_log)
-        wait_for(lambda: _canvas_is_drawn(page, tmp_path / "saved.png"), 30, "the saved map", view_log)
-        page.screenshot(path=str(ARTIFACTS / "viewer-saved-map.png"))
+        wait_for(lambda: _canvas_is_drawn(page, ARTIFACTS / "viewer-saved-map.png"), 30, "the saved map", view_log)
     finally:
         viewing.send_signal(signal.SIGINT)
         assert viewing.wait(timeout=30) == 0
