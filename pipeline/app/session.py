@@ -120,9 +120,11 @@ def open_session(
 def slam_stages(session: Session) -> list[SlamStage]:
     """The SLAM stages of the configured schedule."""
     slam, source, schedule = session.slam, session.source, session.config.slam
+    switch = session.config.live.warm_up
+    warm_up = source.live and (switch == "on" or (switch == "auto" and session.device.type == "cuda"))
     if schedule.schedule == "overlapped":
-        return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live)
-    return sequential_stages(slam, source.last_index, session.observers, source.live)
+        return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live, warm_up)
+    return sequential_stages(slam, source.last_index, session.observers, source.live, warm_up)
 
 
 def graph_of(session: Session) -> Graph:

@@ -195,6 +195,7 @@ class LiveConfig:
     max_keyframes: int = 200  # a live session's keyframes.max_kept unless that is set: memory flat for hours
     max_gaussians: int = 2_000_000  # a live session's mapping.max_gaussians unless that is set
     record: bool = False  # save the frames SLAM receives in <run folder>/recording (TUM layout), to re-run offline
+    warm_up: Switch = "auto"  # compile and record SLAM's kernels on the first frame, then drop it (auto: on CUDA)
 
 
 @dataclass(frozen=True)

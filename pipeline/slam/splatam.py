@@ -8,6 +8,8 @@ tracking state up to that frame.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from pipeline.config import Config
@@ -23,6 +25,8 @@ from pipeline.slam.results import FrameResult
 from pipeline.slam.state import Checkpoint
 from pipeline.slam.tracking import TrackSettings, make_tracker
 
+WARM_UP_FRAMES = 2  # the first frame runs mapping only, the second tracking too
+
 
 class SplaTAM:
     def __init__(self, config: Config, renderer: Renderer, device: torch.device) -> None:
@@ -33,11 +37,16 @@ class SplaTAM:
         kernels = make_kernels(compiled)
         near, far = config.render.near, config.render.far
         cuda = device.type == "cuda"
-        tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
-        self.frontend = TrackingFrontend(tracker, config.tracking, device)
+        self._tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
         views = make_views_renderer(config.render, config.gaussians, device)
-        map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
-        self.backend = MappingBackend(config, renderer, map_settings, device)
+        self._map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
+        self._start_afresh()
+
+    def _start_afresh(self) -> None:
+        """Empty tracking and mapping sides around the same tracker and mapping settings, whose
+        compiled kernels and recorded CUDA graphs are kept."""
+        self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
+        self.backend = MappingBackend(self.config, self.renderer, self._map_settings, self.device)
 
     @property
     def frames_done(self) -> int:
@@ -60,6 +69,18 @@ class SplaTAM:
         """Track one frame (colour, depth and intrinsics on the device) and map it."""
         tracked = self.frontend.track(frame, self.backend.latest)
         return self.backend.map(tracked, is_last)
+
+    def warm_up(self, frame: DeviceFrame) -> None:
+        """Map `frame` and track it against that map, as the first two frames of a scratch run,
+        then start afresh, as if nothing had run. On CUDA the first mapping and the first
+        tracking compile their kernels and record their graphs (seconds, bench/NOTES.md); a
+        live session warms up on a frame it then drops, so that the camera does not move on
+        for seconds between its first frames. Only before the first frame."""
+        if self.frontend.frames_done:
+            raise RuntimeError("SplaTAM.warm_up runs before the first frame only")
+        for index in range(WARM_UP_FRAMES):
+            self.step(replace(frame, index=index))
+        self._start_afresh()
 
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run after the last frame mapped."""

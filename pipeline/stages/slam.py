@@ -9,7 +9,9 @@ be quick.
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,6 +25,8 @@ from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.upload import UploadedFrame
+
+log = logging.getLogger("gsplatam")
 
 FrameObserver = Callable[[SplaTAM, DeviceFrame, FrameResult], None]
 
@@ -40,7 +44,7 @@ class SlamStage:
     pass_over: Callable[[Any], Any] | None = None
     finish_on_stop: bool = False
     interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
-    dropped: int = 0  # live: frames not started because a newer one was waiting
+    dropped: int = 0  # live: frames not started because a newer one was waiting, or used to warm up
 
     def drop(self, item: Any) -> None:
         """The pass-over of a live stage that takes frames: never start a stale frame."""
@@ -94,16 +98,44 @@ class LeadGate:
             self._changed.notify_all()
 
 
+def warm_up_on_first(slam: SplaTAM) -> Callable[[DeviceFrame], bool]:
+    """-> `warmed(frame)`: the first call, before any frame was tracked, warms SLAM up on `frame`
+    (`SplaTAM.warm_up`) and returns True: the stage drops that frame and takes the newest next.
+    Later calls return False."""
+    pending = [True]
+
+    def warmed(frame: DeviceFrame) -> bool:
+        if not pending or slam.frontend.frames_done:
+            return False
+        pending.clear()
+        started = time.perf_counter()
+        slam.warm_up(frame)
+        seconds = time.perf_counter() - started
+        log.info("SLAM warmed up on frame %d in %.1f s; it starts from the newest frame", frame.index, seconds)
+        return True
+
+    return warmed
+
+
+def _never(frame: DeviceFrame) -> bool:
+    return False
+
+
 def sequential_stages(
-    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], live: bool = False
+    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], live: bool = False, warm_up: bool = False
 ) -> list[SlamStage]:
     """Track and map each frame in one thread, on the thread's current stream. Live, a frame is
-    started only when no newer one is waiting (the older ones are dropped and counted)."""
+    started only when no newer one is waiting (the older ones are dropped and counted). With
+    `warm_up` (live only) the first frame warms SLAM up and is dropped (`warm_up_on_first`)."""
     spans = GpuSpans(slam.device)
+    warmed = warm_up_on_first(slam) if warm_up else _never
 
-    def step(uploaded: UploadedFrame) -> FrameResult:
+    def step(uploaded: UploadedFrame) -> FrameResult | None:
         with record_function("slam_step"), spans.frame():
             frame = uploaded.wait()
+            if warmed(frame):
+                stage.dropped += 1
+                return None
             result = slam.step(frame, is_last=frame.index == last_index)
         for observe in observers:
             observe(slam, frame, result)
@@ -116,17 +148,28 @@ def sequential_stages(
 
 
 def overlapped_stages(
-    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], max_lead: int, live: bool
+    slam: SplaTAM,
+    last_index: int | None,
+    observers: Sequence[FrameObserver],
+    max_lead: int,
+    live: bool,
+    warm_up: bool = False,
 ) -> list[SlamStage]:
     """Tracking and mapping in two threads and two CUDA streams. Offline, tracking runs at most
     `max_lead` frames ahead of mapping; live, it never waits for mapping, and mapping takes the
     newest tracked frame, passing the older ones on unmapped; and tracking starts only the newest
-    uploaded frame (the older ones are dropped and counted)."""
+    uploaded frame (the older ones are dropped and counted). With `warm_up` (live only) the first
+    frame warms both sides up in the tracking thread, before mapping has anything, and is dropped."""
     gate = LeadGate(None if live else max_lead)
     track_spans, map_spans = GpuSpans(slam.device), GpuSpans(slam.device)
     track_stream, map_stream = _stream_for(slam), _stream_for(slam)
+    warmed = warm_up_on_first(slam) if warm_up else _never
 
-    def track(uploaded: UploadedFrame) -> TrackedFrame:
+    def track(uploaded: UploadedFrame) -> TrackedFrame | None:
+        with _on_stream(track_stream):
+            if warmed(uploaded.wait()):
+                tracking.dropped += 1
+                return None
         gate.enter()
         with record_function("tracking_stage"), _on_stream(track_stream), track_spans.frame():
             return slam.frontend.track(uploaded.wait(), slam.backend.latest)

@@ -19,16 +19,18 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.app.run import run_slam
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults, with_value
+from pipeline.frame import DeviceFrame
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.source import DatasetSource
 from pipeline.io.outputs.checkpoint import read_checkpoint
 from pipeline.io.trajectory import read_tum_trajectory
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
+from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import overlapped_stages, sequential_stages
-from pipeline.stages.upload import HostUploader, host_frame_tensors
+from pipeline.stages.upload import HostUploader, UploadedFrame, host_frame_tensors
 
 CPU = torch.device("cpu")
 REFERENCE = ROOT / "tests" / "data" / "sequential_reference.json"
@@ -106,6 +108,52 @@ def test_overlapped_tracks_against_published_versions_that_never_change(replica_
     assert versions == sorted(versions) and versions[0] >= 1
     published = [r.map_version for r in sink.results]
     assert published == sorted(published) and published[-1] == len(dataset)
+
+
+@pytest.mark.parametrize("overlapped", [False, True], ids=["sequential", "overlapped"])
+def test_a_live_warm_up_drops_the_first_frame_and_leaves_no_trace(replica_seq: Path, overlapped: bool) -> None:
+    """The first frame a warming live stage takes runs through SLAM and is dropped (counted);
+    the frames after it give, bit for bit, what a SLAM that never saw it gives."""
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:4]
+    warmed, cold = _slam(FAST), _slam(FAST)
+    if overlapped:
+        tracking, mapping = overlapped_stages(warmed, None, [], 1, live=True, warm_up=True)
+
+        def step(frame: DeviceFrame) -> FrameResult | None:
+            tracked = tracking.run(UploadedFrame(frame, None))
+            return None if tracked is None else mapping.run(tracked)
+
+        first = tracking
+    else:
+        (first,) = sequential_stages(warmed, None, [], live=True, warm_up=True)
+
+        def step(frame: DeviceFrame) -> FrameResult | None:
+            return first.run(UploadedFrame(frame, None))
+
+    assert step(frames[0]) is None and first.dropped == 1
+    assert warmed.frames_done == 0 and warmed.gaussians is None and warmed.frontend.frames_done == 0
+    results = [step(f) for f in frames[1:]]
+    expected = [cold.step(f) for f in frames[1:]]
+    assert [r.index for r in results if r is not None] == [r.index for r in expected] == [1, 2, 3]
+    assert torch.equal(torch.stack(warmed.poses), torch.stack(cold.poses))
+    assert torch.equal(warmed.poses[0], torch.eye(4))  # the map starts at the first frame kept
+    assert warmed.gaussians is not None and cold.gaussians is not None
+    assert _checksum(warmed.gaussians) == _checksum(cold.gaussians)
+    ours, theirs = warmed.checkpoint(), cold.checkpoint()
+    assert ours.rng_state == theirs.rng_state and torch.equal(ours.generator_state, theirs.generator_state)
+    assert (ours.scene_radius, ours.loss_history) == (theirs.scene_radius, theirs.loss_history)
+    assert [k.index for k in ours.keyframes] == [k.index for k in theirs.keyframes]
+    counters = ("frames_seen", "last_keyframe_seen")
+    assert [getattr(warmed.backend, c) for c in counters] == [getattr(cold.backend, c) for c in counters]
+    assert first.dropped == 1
+
+
+def test_warm_up_refuses_a_slam_that_has_started(replica_seq: Path) -> None:
+    frame = host_frame_tensors(next(iter(open_dataset(DatasetConfig(path=str(replica_seq))).frames())))
+    slam = _slam(FAST)
+    slam.step(frame)
+    with pytest.raises(RuntimeError, match="before the first frame"):
+        slam.warm_up(frame)
 
 
 class PacedSource(DatasetSource):
