@@ -86,10 +86,24 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, pose[..., 3:, :]], dim=-2)  # a rigid transform's last row is (0, 0, 0, 1)
 
 
-def constant_velocity(c2w_prev2: torch.Tensor, c2w_prev: torch.Tensor) -> torch.Tensor:
-    """Predict the next camera-to-world by repeating the last relative motion."""
+def constant_velocity(c2w_prev2: torch.Tensor, c2w_prev: torch.Tensor, fraction: float = 1.0) -> torch.Tensor:
+    """Predict the next camera-to-world [4, 4] by repeating the last relative motion, or
+    `fraction` (in [0, 1]) of it when the next frame is that much nearer in time."""
     motion = invert_pose(c2w_prev2) @ c2w_prev
+    if fraction != 1.0:
+        motion = motion_fraction(motion, fraction)
     return c2w_prev @ motion
+
+
+def motion_fraction(motion: torch.Tensor, fraction: float) -> torch.Tensor:
+    """`fraction` of a rigid motion [4, 4]: its rotation angle about the same axis and its
+    translation, each scaled (0: the identity, 1: the motion itself)."""
+    quat = rotmat_to_quat(motion[:3, :3])  # w >= 0: the angle is at most pi
+    sine = quat[1:].norm()
+    half_angle = torch.atan2(sine, quat[0]) * fraction
+    axis = quat[1:] / sine.clamp(min=1e-12)
+    scaled = torch.cat([torch.cos(half_angle)[None], torch.sin(half_angle) * axis]).to(motion.dtype)
+    return pose_matrix(scaled, motion[:3, 3] * fraction)
 
 
 def pixel_grid(height: int, width: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:

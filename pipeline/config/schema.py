@@ -63,7 +63,7 @@ class TrackingConfig:
     lr_rotation: float = 0.0  # Adam step of the pose rotation; 0: by dataset (0.0004 Replica-like, 0.002 TUM)
     lr_translation: float = 0.002  # Adam step of the pose translation, metres
     silhouette_threshold: float = 0.99  # only pixels the map covers at least this much count in the loss
-    lost_translation_m: float = 0.3  # a jump beyond this from the initial guess marks tracking lost
+    lost_translation_m: float = 0.3  # a jump beyond this from the guess, per usual frame interval since the last good frame, marks tracking lost
     lost_coverage: float = 0.05  # fewer pixels than this fraction above the threshold marks it lost
     relocalise_candidates: int = 3  # keyframe poses a lost frame is tracked again from (0: no relocalisation)
     refine_iters: int = 0  # align: then this many of adam's iterations from the aligned pose

@@ -30,6 +30,8 @@ from pipeline.slam.tracking import Tracker
 
 LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
 LOSS_HISTORY_MIN = 5
+STALL_RATIO = 0.5  # the next frame this much nearer in time than the last motion took: predict that fraction of it
+INTERVAL_WINDOW = 10  # the session's usual frame interval is the median of this many recent ones
 
 
 class TrackingState(Enum):
@@ -93,6 +95,7 @@ class TrackingFrontend:
         self.config = config
         self.device = device
         self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked
+        self.timestamps: list[float | None] = []  # seconds, per frame tracked (None: before a resume)
         self.states: list[TrackingState] = []  # per frame tracked
         self.last_good = -1  # position in `poses` of the last frame not lost
         self.loss_history: list[float] = []
@@ -141,8 +144,30 @@ class TrackingFrontend:
         if frame.c2w_prior is not None and prior is not None:
             return poses[good] @ invert_pose(prior) @ frame.c2w_prior
         if good == len(poses) - 1 >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
-            return constant_velocity(poses[-2], poses[-1])
+            return constant_velocity(poses[-2], poses[-1], self._velocity_fraction(frame))
         return poses[good]
+
+    def _velocity_fraction(self, frame: DeviceFrame) -> float:
+        """The part of the last motion to repeat: all of it, unless the last motion spanned a
+        stall (a busy GPU, a reconnection: the live source kept only the newest frame) and the
+        next frame is at most STALL_RATIO of that time away; then that fraction."""
+        last, before = self.timestamps[-1], self.timestamps[-2]
+        if last is None or before is None or last <= before or frame.timestamp <= last:
+            return 1.0
+        fraction = (frame.timestamp - last) / (last - before)
+        return fraction if fraction <= STALL_RATIO else 1.0
+
+    def _jump_limit_m(self, frame: DeviceFrame) -> float:
+        """How far a pose may land from its guess and be trusted: `lost_translation_m` per usual
+        frame interval, times the intervals since the last good frame (at least one), since after
+        a stall or a reconnection the camera has moved on for longer."""
+        known = [t for t in self.timestamps[-INTERVAL_WINDOW - 1 :] if t is not None]
+        intervals = [b - a for a, b in zip(known, known[1:]) if b > a]
+        good = self.timestamps[self.last_good] if self.last_good >= 0 else None
+        if not intervals or good is None or frame.timestamp <= good:
+            return self.config.lost_translation_m
+        usual = sorted(intervals)[len(intervals) // 2]
+        return self.config.lost_translation_m * max(1.0, (frame.timestamp - good) / usual)
 
     def _attempt(
         self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, keyframe: int | None = None
@@ -198,8 +223,8 @@ class TrackingFrontend:
             lost = "tracking loss is not finite"
         elif failure:
             lost = failure
-        elif jump > self.config.lost_translation_m:
-            lost = f"pose jumped {jump:.3f} m from its prediction"
+        elif not first and jump > (limit := self._jump_limit_m(frame)):
+            lost = f"pose jumped {jump:.3f} m from its prediction (at most {limit:.2f} m)"
         elif (
             len(history) >= LOSS_HISTORY_MIN and per_pixel > LOSS_EXPLOSION_FACTOR * sorted(history)[len(history) // 2]
         ):
@@ -212,6 +237,7 @@ class TrackingFrontend:
     def _record(self, frame: DeviceFrame, attempt: Attempt, first: bool) -> None:
         """Carry the frame's pose, and the loss and device pose of a frame tracked well, to the next."""
         self.poses.append(attempt.c2w)
+        self.timestamps.append(frame.timestamp)
         self.states.append(attempt.state)
         if not first and math.isfinite(attempt.verdict.per_pixel):
             self.loss_history.append(attempt.verdict.per_pixel)

@@ -107,6 +107,7 @@ class SplaTAM:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         dev, front, back = self.device, self.frontend, self.backend
         front.poses = list(saved.poses.to(dev))
+        front.timestamps = [None] * saved.frames_done  # a checkpoint keeps poses, not their times
         front.loss_history = list(saved.loss_history)
         states = dict.fromkeys(range(saved.frames_done), TrackingState.TRACKED)
         states |= dict.fromkeys(saved.relocalised_frames, TrackingState.RELOCALISED)

@@ -10,7 +10,7 @@ import torch
 
 from pipeline.config import DatasetConfig, SyntheticConfig, TrackingConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import constant_velocity
+from pipeline.geometry import constant_velocity, invert_pose
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.render import Gaussians, make_renderer
@@ -89,13 +89,64 @@ def test_a_lost_frame_is_relocalised_from_a_keyframe_only_when_candidates_are_al
         front = TrackingFrontend(
             BasinTracker(truth, 0.1), replace(TrackingConfig(), relocalise_candidates=candidates), CPU
         )
-        front.poses, front.states, front.last_good = [shifted(2.0)], [TrackingState.TRACKED], 0
+        front.poses, front.timestamps, front.states = [shifted(2.0)], [0.0], [TrackingState.TRACKED]
+        front.last_good = 0
         results = [front.track(frame(i), version(keyframes)).result for i in range(1, 4)]
         assert [bool(r.lost) for r in results] == lost
         if candidates:
             assert results[0].relocalised_from == 0 and "relocalised from keyframe 0" in results[0].warning
             assert results[1].relocalised_from is None  # tracked from the relocalised pose
             torch.testing.assert_close(front.poses[-1], truth)
+
+
+def stamped(index: int, timestamp: float) -> DeviceFrame:
+    return replace(frame(index), timestamp=timestamp)
+
+
+def test_after_a_stall_the_pose_is_trusted_and_the_next_guess_repeats_only_the_time_since() -> None:
+    """Frames at 30 per second, then 1.27 s without one (the live source kept the newest): the
+    camera moved 38 cm, over `lost_translation_m` (30 cm) but not over 30 cm per frame interval
+    since the last good frame, so the pose is kept; the next frame, one interval later, is
+    guessed at 1/38 of that motion ahead, not all of it (which would be 38 cm off)."""
+    truth = [(0.0, 0.0), (1 / 30, 0.01), (2 / 30, 0.02), (40 / 30, 0.40), (41 / 30, 0.41), (42 / 30, 0.42)]
+    tracker = StubTracker([(shifted(x), "") for _, x in truth[1:]])  # the first frame is not tracked
+    front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
+    results = [front.track(stamped(i, t), version() if i else None).result for i, (t, _) in enumerate(truth)]
+    assert [r.lost for r in results] == [""] * len(truth)
+    guesses = tracker.guesses  # for frames 1 to 5
+    torch.testing.assert_close(guesses[2], shifted(0.03))  # constant velocity over one interval
+    torch.testing.assert_close(guesses[3], shifted(0.41), atol=1e-6, rtol=0)  # 1/38 of 0.02 -> 0.40
+    torch.testing.assert_close(guesses[4], shifted(0.42), atol=1e-6, rtol=0)  # steady again
+
+
+def test_a_jump_beyond_the_distance_the_time_allows_is_still_lost() -> None:
+    """Two intervals after the last good frame, 30 cm per interval allows 60 cm: 70 cm is lost."""
+    truth = [(0.0, 0.0), (1 / 30, 0.01), (2 / 30, 0.02), (4 / 30, 0.74)]
+    tracker = StubTracker([(shifted(x), "") for _, x in truth[1:]])
+    front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
+    results = [front.track(stamped(i, t), version() if i else None).result for i, (t, _) in enumerate(truth)]
+    assert [bool(r.lost) for r in results] == [False, False, False, True]
+    assert "(at most 0.60 m)" in results[-1].lost
+
+
+@pytest.mark.slow
+def test_a_stall_of_35_frames_loses_no_frame(tmp_path: Path) -> None:
+    """The generated room at 64x48 (1 cm per frame), the tiny preset: frames 0-3, then 38-41, as
+    a live session sees a stall of 1.2 s. Before the guess and the jump limit knew the time, the
+    first frame after the stall was judged lost ("pose jumped 0.39 m") and so was every later one."""
+    path = tmp_path / "room"
+    write_synthetic(path, SyntheticConfig(frames=42, width=64, height=48), progress=False)
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(path))).frames()]
+    config = with_dataset_defaults(load_config("tiny"), "replica")
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+    results = [slam.step(frames[i]) for i in [0, 1, 2, 3, 38, 39, 40, 41]]
+    assert [r.lost for r in results] == [""] * 8
+    start = frames[0].c2w_gt
+    assert start is not None
+    for r in results[4:]:
+        assert r.c2w_gt is not None
+        moved = invert_pose(start) @ r.c2w_gt  # ground truth relative to the first frame, as SLAM's poses are
+        assert float(torch.linalg.norm(r.c2w[:3, 3] - moved[:3, 3])) < 0.12  # frames 0-3 are ~8 cm off here
 
 
 def test_relocalisation_picks_spread_over_the_store_and_cover_it_in_turn() -> None:

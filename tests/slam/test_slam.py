@@ -8,7 +8,14 @@ import torch
 from conftest import SMALL_SYNTH
 
 from pipeline.config import DatasetConfig, DensifyConfig, load_config, with_dataset_defaults
-from pipeline.geometry import constant_velocity, invert_pose, pose_matrix, quat_to_rotmat, rotmat_to_quat
+from pipeline.geometry import (
+    constant_velocity,
+    invert_pose,
+    motion_fraction,
+    pose_matrix,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.outputs.checkpoint import read_checkpoint, write_checkpoint
 from pipeline.io.outputs.ply import read_ply, write_ply
@@ -89,6 +96,23 @@ def test_constant_velocity_repeats_the_last_motion() -> None:
     a, b = yaw(0.0), yaw(0.1, (0.1, 0.0, 0.0))
     c = constant_velocity(a, b)
     torch.testing.assert_close(invert_pose(b) @ c, invert_pose(a) @ b)
+
+
+def test_a_fraction_of_a_motion_scales_its_angle_about_the_same_axis_and_its_translation() -> None:
+    axis = torch.tensor([0.6, 0.8, 0.0])
+    motion = pose_matrix(
+        torch.cat([torch.tensor([math.cos(0.3)]), math.sin(0.3) * axis]), torch.tensor([0.3, -0.2, 0.1])
+    )
+    half = motion_fraction(motion, 0.5)
+    torch.testing.assert_close(half[:3, :3] @ half[:3, :3], motion[:3, :3])
+    torch.testing.assert_close(half[:3, 3], motion[:3, 3] / 2)
+    torch.testing.assert_close(motion_fraction(motion, 0.0), torch.eye(4))
+    torch.testing.assert_close(motion_fraction(motion, 1.0), motion)
+    torch.testing.assert_close(motion_fraction(torch.eye(4), 0.3), torch.eye(4))  # no rotation: no axis needed
+    a, b = yaw(0.0), yaw(0.1, (0.1, 0.0, 0.0))
+    torch.testing.assert_close(
+        invert_pose(b) @ constant_velocity(a, b, 0.25), motion_fraction(invert_pose(a) @ b, 0.25)
+    )
 
 
 def test_pose_quaternion_round_trip() -> None:
