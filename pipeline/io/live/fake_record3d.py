@@ -3,8 +3,9 @@
 It is how tests, demos and users without an iPhone exercise the `serve` daemon. It serves
 `/getOffer` (403 while a receiver is connected), `/answer`, `/metadata` (K column-major), and
 sends H.264 video of hue-encoded depth | colour at a fixed frame rate (or VP8, in either YUV
-convention, to play a browser-style sender). The frame cursor is kept
-across connections, like a phone that keeps moving while the receiver reconnects.
+convention, to play a browser-style sender). The frame cursor is kept across connections and
+moves on at the stream's rate while no receiver is connected, as a hand-held phone keeps moving
+while the receiver reconnects.
 """
 
 from __future__ import annotations
@@ -40,14 +41,21 @@ class PhoneState:
     color: ColorEncoding  # the YUV matrix and range of the frames the encoder gets (neither codec signals it)
     cursor: int = 0  # next dataset frame to send
     sent: int = 0
+    away_since: float | None = None  # time.monotonic() when the last connection ended
 
     def next_index(self) -> int | None:
         if self.cursor >= len(self.dataset):
             if not self.loop:
                 return None
-            self.cursor = 0
+            self.cursor %= len(self.dataset)
         index, self.cursor = self.cursor, self.cursor + 1
         return index
+
+    def resume(self) -> None:
+        """A new connection's first frame: skip the frames the camera passed while none was connected."""
+        if self.away_since is not None:
+            self.cursor += round((time.monotonic() - self.away_since) * self.fps)
+            self.away_since = None
 
 
 class DatasetVideoTrack(MediaStreamTrack):
@@ -67,6 +75,7 @@ class DatasetVideoTrack(MediaStreamTrack):
     async def recv(self) -> av.VideoFrame:
         if self._start is None:
             self._start = time.monotonic()
+            self.state.resume()
         due = self._start + self._count / self.state.fps
         await asyncio.sleep(max(0.0, due - time.monotonic()))
         if self.per_connection and self._count >= self.per_connection:
@@ -179,6 +188,7 @@ class FakePhone:
         """End the current connection (the receiver sees the stream end); the phone is free again."""
         pc, self.pc = self.pc, None
         if pc is not None:
+            self.state.away_since = time.monotonic()
             await pc.close()
 
     async def start(self, host: str, port: int) -> int:

@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -216,6 +217,20 @@ def test_loopback_stream_decodes_to_the_sent_frames(
         assert np.median(error) < 0.015 and np.percentile(error, 95) < 0.08  # bitrate adapts: loose bounds
 
     asyncio.run(main())
+
+
+def test_the_fake_phone_moves_on_while_no_receiver_is_connected(phone_dataset: Dataset) -> None:
+    """A hand-held phone keeps moving while the receiver reconnects: the next connection starts
+    the away time's worth of frames later (wrapping when looping)."""
+    state = FakePhone(phone_dataset, fps=5, loop=True).state
+    state.cursor = 3
+    state.resume()  # never away: no skip
+    assert state.cursor == 3
+    state.away_since = time.monotonic() - 2.0
+    state.resume()
+    assert state.cursor == 3 + 10 and state.away_since is None
+    state.cursor = len(phone_dataset) + 4
+    assert state.next_index() == 4
 
 
 @pytest.mark.live
