@@ -2,8 +2,9 @@
 memory sampled through a long session (run on the device machine; needs the live extra).
 
 The fake phone streams a generated room (looping) over real WebRTC on 127.0.0.1; `serve` runs
-in a subprocess as a user would start it; its status endpoint is read every `--sample-s`.
-Writes live_latency_<W>x<H>_<seconds>s.json under --out.
+in a subprocess as a user would start it; its status endpoint is read every `--sample-s`;
+`--disconnect-at` drops the phone's connection at those seconds (the daemon reconnects).
+Writes live_latency_<W>x<H>_<seconds>s.json, the daemon's log and its frames.csv under --out.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import shutil
 import signal
 import socket
 import subprocess
@@ -36,7 +38,7 @@ def free_port() -> int:
 def status(port: int) -> dict[str, Any] | None:
     try:
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=2) as response:
-            return json.loads(response.read())  # type: ignore[no-any-return]
+            return json.loads(response.read())
     except OSError:
         return None
 
@@ -55,10 +57,14 @@ async def session(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     log = open(out / f"daemon_{args.size}_{args.seconds}s.log", "w")
     daemon = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
     samples: list[dict[str, Any]] = []
+    disconnects = sorted(args.disconnect_at)
     start = time.monotonic()
     try:
         while time.monotonic() - start < args.seconds and daemon.poll() is None:
             await asyncio.sleep(args.sample_s)
+            if disconnects and time.monotonic() - start >= disconnects[0]:
+                disconnects.pop(0)
+                await phone.disconnect()  # the phone keeps moving until the daemon reconnects
             read = await asyncio.to_thread(status, status_port)
             samples.append({"t_s": time.monotonic() - start, "status": read})
     finally:
@@ -69,10 +75,13 @@ async def session(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     folder = Path("/tmp/live_runs") / f"live_{args.size}_{args.seconds}"
     metrics_path = next(folder.glob("**/metrics.json"), None) if folder.exists() else None
     metrics = json.loads(metrics_path.read_text()) if metrics_path else None
+    if metrics_path is not None and (metrics_path.parent / "frames.csv").exists():
+        shutil.copy(metrics_path.parent / "frames.csv", out / f"frames_{args.size}_{args.seconds}s.csv")
     answered = [s for s in samples if s["status"] is not None]
     memory = [s["status"].get("gpu_memory_gb") for s in answered if s["status"].get("gpu_memory_gb") is not None]
     return {
         "size": args.size, "fps_sent": args.fps, "seconds": args.seconds, "preset": args.preset, "set": args.set,
+        "disconnect_at_s": args.disconnect_at,
         "exit_code": code, "frames_sent": sent, "status_samples": len(samples), "status_answered": len(answered),
         "gpu_memory_gb": memory, "metrics": metrics, "samples": samples,
     }  # fmt: skip
@@ -86,6 +95,9 @@ def main() -> None:
     parser.add_argument("--preset", default="tiny")
     parser.add_argument("--sample-s", type=float, default=10.0)
     parser.add_argument("--set", action="append", default=[])
+    parser.add_argument(
+        "--disconnect-at", type=float, action="append", default=[], help="seconds: drop the phone's connection"
+    )
     parser.add_argument("--out", default="bench/results")
     args = parser.parse_args()
     out = Path(args.out)
