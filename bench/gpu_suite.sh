@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports
+#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
 # The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine"),
 # and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/.
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
@@ -51,6 +51,12 @@ for part in "$@"; do
     align-cost) python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     spread) bench synthetic --presets tiny --set synthetic.frames=100 --variants adam,align-overlapped --repeats 3 --stem spread_tiny ;;
     live-age) for size in 256x192 640x480; do python3 bench/live_latency.py --out "$out" --size $size --seconds 60 2>&1 | tail -n 4; done ;;
+    live-warmup) for w in off on; do  # an empty compile cache per run: the first steps as on a fresh machine
+                   TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python3 bench/live_latency.py --out "$out/live_warmup_$w" \
+                     --size 256x192 --seconds 60 --set live.warm_up=$w 2>&1 | tail -n 4
+                 done
+                 python3 bench/live_latency.py --out "$out/live_reconnect" --size 256x192 --seconds 60 \
+                   --disconnect-at 25 --set live.retry_initial_s=3 2>&1 | tail -n 4 ;;
     soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;

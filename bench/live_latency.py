@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import shutil
 import signal
 import socket
@@ -49,9 +50,10 @@ async def session(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     phone = FakePhone(open_dataset(DatasetConfig(path=str(scene))), fps=args.fps, loop=True)
     phone_port = await phone.start("127.0.0.1", 0)
     status_port = free_port()
+    run_name = f"live_{args.size}_{args.seconds}s_{os.getpid()}"  # several runs of one size in one call
     command = [
         sys.executable, "-m", "pipeline", "serve", "--record3d", f"http://127.0.0.1:{phone_port}",
-        "--preset", args.preset, "--output", "/tmp/live_runs", "--name", f"live_{args.size}_{args.seconds}",
+        "--preset", args.preset, "--output", "/tmp/live_runs", "--name", run_name,
         "--quiet", "--set", f"live.status_port={status_port}", *sum((["--set", s] for s in args.set), []),
     ]  # fmt: skip
     log = open(out / f"daemon_{args.size}_{args.seconds}s.log", "w")
@@ -72,7 +74,7 @@ async def session(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         code = await asyncio.to_thread(daemon.wait, 120)
         sent = phone.state.sent
         await phone.stop()
-    folder = Path("/tmp/live_runs") / f"live_{args.size}_{args.seconds}"
+    folder = Path("/tmp/live_runs") / run_name
     metrics_path = next(folder.glob("**/metrics.json"), None) if folder.exists() else None
     metrics = json.loads(metrics_path.read_text()) if metrics_path else None
     if metrics_path is not None and (metrics_path.parent / "frames.csv").exists():
