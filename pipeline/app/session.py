@@ -17,7 +17,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from pipeline.app.profiling import all_threads_config, summarise
-from pipeline.config import Config, with_dataset_defaults
+from pipeline.config import Config, switched_on, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
 from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
@@ -120,8 +120,7 @@ def open_session(
 def slam_stages(session: Session) -> list[SlamStage]:
     """The SLAM stages of the configured schedule."""
     slam, source, schedule = session.slam, session.source, session.config.slam
-    switch = session.config.live.warm_up
-    warm_up = source.live and (switch == "on" or (switch == "auto" and session.device.type == "cuda"))
+    warm_up = source.live and switched_on(session.config.live.warm_up, session.device.type == "cuda")
     if schedule.schedule == "overlapped":
         return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live, warm_up)
     return sequential_stages(slam, source.last_index, session.observers, source.live, warm_up)

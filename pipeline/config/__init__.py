@@ -40,6 +40,7 @@ from pipeline.config.schema import (
     TrackingMethod,
     ViewerConfig,
     ViewerKind,
+    switched_on,
 )
 
 __all__ = [
@@ -47,6 +48,6 @@ __all__ = [
     "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
-    "ViewerKind",
+    "ViewerKind", "switched_on",
     "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

@@ -17,6 +17,11 @@ ViewerKind = Literal["viser", "open3d"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
 
 
+def switched_on(switch: Switch, cuda: bool) -> bool:
+    """A Switch setting: on, off, or auto (on with CUDA)."""
+    return switch == "on" or (switch == "auto" and cuda)
+
+
 @dataclass(frozen=True)
 class DatasetConfig:
     """The input sequence on disk and how much of it is used."""

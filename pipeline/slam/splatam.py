@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import torch
 
-from pipeline.config import Config
+from pipeline.config import Config, switched_on
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer, make_views_renderer
 from pipeline.slam.backend import MappingBackend
@@ -33,10 +33,9 @@ class SplaTAM:
         self.config = config
         self.renderer = renderer
         self.device = device
-        compiled = config.run.compile == "on" or (config.run.compile == "auto" and device.type == "cuda")
-        kernels = make_kernels(compiled)
-        near, far = config.render.near, config.render.far
         cuda = device.type == "cuda"
+        kernels = make_kernels(switched_on(config.run.compile, cuda))
+        near, far = config.render.near, config.render.far
         self._tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
         views = make_views_renderer(config.render, config.gaussians, device)
         self._map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)

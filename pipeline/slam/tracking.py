@@ -8,7 +8,7 @@ from typing import Protocol
 
 import torch
 
-from pipeline.config import LossConfig, TrackingConfig
+from pipeline.config import LossConfig, TrackingConfig, switched_on
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, Gaussians, Renderer
@@ -51,7 +51,7 @@ def make_tracker(settings: TrackSettings) -> Tracker:
     config = settings.config
     if config.method == "adam":
         return partial(track, settings=settings)
-    capture = config.align_graph == "on" or (config.align_graph == "auto" and settings.cuda)
+    capture = switched_on(config.align_graph, settings.cuda)
     aligner = AlignTracker(
         settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration, capture
     )

@@ -102,12 +102,13 @@ def warm_up_on_first(slam: SplaTAM) -> Callable[[DeviceFrame], bool]:
     """-> `warmed(frame)`: the first call, before any frame was tracked, warms SLAM up on `frame`
     (`SplaTAM.warm_up`) and returns True: the stage drops that frame and takes the newest next.
     Later calls return False."""
-    pending = [True]
+    pending = True
 
     def warmed(frame: DeviceFrame) -> bool:
+        nonlocal pending
         if not pending or slam.frontend.frames_done:
             return False
-        pending.clear()
+        pending = False
         started = time.perf_counter()
         slam.warm_up(frame)
         seconds = time.perf_counter() - started
