@@ -13,7 +13,6 @@ import argparse
 import asyncio
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -28,6 +27,7 @@ from pipeline.config import DatasetConfig, SyntheticConfig
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import cached_synthetic
 from pipeline.io.live.fake_record3d import FakePhone
+from pipeline.io.outputs.atomic import atomic_write_bytes, atomic_write_text
 
 
 def free_port() -> int:
@@ -78,7 +78,8 @@ async def session(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     metrics_path = next(folder.glob("**/metrics.json"), None) if folder.exists() else None
     metrics = json.loads(metrics_path.read_text()) if metrics_path else None
     if metrics_path is not None and (metrics_path.parent / "frames.csv").exists():
-        shutil.copy(metrics_path.parent / "frames.csv", out / f"frames_{args.size}_{args.seconds}s.csv")
+        frames = (metrics_path.parent / "frames.csv").read_bytes()
+        atomic_write_bytes(out / f"frames_{args.size}_{args.seconds}s.csv", frames)
     answered = [s for s in samples if s["status"] is not None]
     memory = [s["status"].get("gpu_memory_gb") for s in answered if s["status"].get("gpu_memory_gb") is not None]
     return {
@@ -110,7 +111,7 @@ def main() -> None:
     print(json.dumps({k: result[k] for k in ("size", "exit_code", "frames_sent", "status_answered")}, indent=1))
     print("frame_age_ms", metrics.get("frame_age_ms"), "fps", (metrics.get("time") or {}).get("fps_steady"))
     print("gpu_memory_gb", result["gpu_memory_gb"])
-    (out / f"live_latency_{args.size}_{args.seconds}s.json").write_text(json.dumps(result, indent=1) + "\n")
+    atomic_write_text(out / f"live_latency_{args.size}_{args.seconds}s.json", json.dumps(result, indent=1) + "\n")
 
 
 if __name__ == "__main__":
