@@ -24,6 +24,7 @@ from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.source import DatasetSource
 from pipeline.io.outputs.checkpoint import read_checkpoint
 from pipeline.io.trajectory import read_tum_trajectory
+from pipeline.metrics import view_quality
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
 from pipeline.slam.results import FrameResult
@@ -35,6 +36,8 @@ from pipeline.stages.upload import HostUploader, UploadedFrame, host_frame_tenso
 CPU = torch.device("cpu")
 REFERENCE = ROOT / "tests" / "data" / "sequential_reference.json"
 FAST = ["tracking.iters=3", "mapping.iters=3"]
+RECORDED_PSNR_DB = 0.02  # the recorded run's renders on another CPU: 30x the rounding spread measured (REFERENCE)
+RECORDED_L1_CM = 0.01
 
 
 def _checksum(gaussians: Gaussians) -> str:
@@ -62,8 +65,9 @@ def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(r
     """The sequential schedule is SplaTAM.step frame after frame, bit for bit; and it reproduces
     the run recorded before tracking and mapping were split (tests/data/sequential_reference.json,
     same settings, SplaTAM's tracker; re-recorded when the reference renderer went to 8x8 tiles, the
-    file says by how much it moved; bit for bit on the machine that recorded it, compared here to 1e-6
-    since another CPU may round differently)."""
+    file says by how much it moved). Bit for bit on the machine that recorded it; another CPU rounds
+    float32 reductions in another order, so poses, the Gaussian count and renders of the final map are
+    compared, to tolerances the file derives ("tolerances")."""
     dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
     plain = _slam(["tracking.method=adam"])  # the recorded run's tracker
     for frame in dataset.frames():
@@ -78,8 +82,13 @@ def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(r
     recorded = json.loads(REFERENCE.read_text())
     np.testing.assert_allclose(torch.stack(plain.poses).numpy(), np.array(recorded["poses_c2w"]), atol=1e-6)
     assert len(plain.gaussians) == recorded["gaussians"]
-    for name, total in recorded["sums"].items():
-        assert float(getattr(plain.gaussians, name).double().sum()) == pytest.approx(total, rel=1e-5, abs=1e-5)
+    config, frames = plain.config, [host_frame_tensors(frame) for frame in dataset.frames()]
+    scores = [
+        view_quality(plain.renderer, plain.gaussians, frame, c2w, config.render.near, config.render.far)
+        for frame, c2w in zip(frames, plain.poses)
+    ]
+    np.testing.assert_allclose([s.psnr_db for s in scores], recorded["render"]["psnr_db"], atol=RECORDED_PSNR_DB)
+    np.testing.assert_allclose([s.depth_l1_cm for s in scores], recorded["render"]["depth_l1_cm"], atol=RECORDED_L1_CM)
 
 
 @pytest.mark.slow
