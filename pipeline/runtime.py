@@ -25,10 +25,9 @@ from pipeline.frame import Frame
 from pipeline.source import Source
 from pipeline.stages.queues import END, EndOfStream, Policy, StageQueue, StreamFailed
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import SlamStage
 from pipeline.stages.stage import StageStats, frame_index, transform_stage
 from pipeline.stages.upload import UploadedFrame
-from pipeline.stages.worker import dedicated_thread_stage
+from pipeline.stages.worker import DedicatedThread, ThreadedStage
 
 try:
     import uvloop
@@ -81,7 +80,7 @@ class Graph:
 
     source: Source
     upload: Callable[[Frame], UploadedFrame]
-    slam: list[SlamStage]  # one (sequential) or tracking then mapping (overlapped)
+    slam: list[ThreadedStage]  # one (sequential) or tracking then mapping (overlapped)
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
@@ -167,20 +166,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
             ]
             inboxes, outboxes = [uploaded, *between], [*between, results]
             slam = [
-                group.create_task(
-                    dedicated_thread_stage(
-                        stage.name,
-                        stage.run,
-                        inbox,
-                        outbox,
-                        stage_stats,
-                        stop,
-                        in_flight=1 if stage.pass_over else 2,  # live: the newest item is chosen when it starts
-                        pass_over=stage.pass_over,
-                        finish_on_stop=stage.finish_on_stop,
-                        interrupt=stage.interrupt,
-                    )
-                )
+                group.create_task(DedicatedThread(stage, inbox, outbox, stage_stats, stop).run())
                 for stage, inbox, outbox, stage_stats in zip(graph.slam, inboxes, outboxes, stats[2:])
             ]
             group.create_task(graph.sink.drain(results))

@@ -12,6 +12,9 @@ import torch
 
 from pipeline.config import SyntheticConfig
 from pipeline.io.datasets.synthetic_writer import write_synthetic
+from pipeline.render.types import Gaussians
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.state import BackendState, Checkpoint, FrontendState
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # one of two workers on two cores: one thread each,
     os.environ["OMP_NUM_THREADS"] = "1"  # and for the commands a test starts
@@ -76,3 +79,21 @@ def dds_domain() -> Iterator[int]:
             lock.close()
         return
     raise RuntimeError("every DDS domain id is held by another test")
+
+
+def make_checkpoint(
+    gaussians: Gaussians,
+    keyframes: list[Keyframe],
+    poses: torch.Tensor,
+    scene_radius: float = 1.0,
+    loss_history: list[float] | None = None,
+    last_prior: torch.Tensor | None = None,
+    rng_state: tuple[object, ...] | None = None,
+    generator: torch.Generator | None = None,
+) -> Checkpoint:
+    """A checkpoint of `poses` [F, 4, 4] frames, every one of them mapped."""
+    tracking = FrontendState(poses, list(loss_history or []), last_prior)
+    rng = rng_state or random.Random(0).getstate()
+    state = (generator or torch.Generator()).get_state()
+    mapping = BackendState(gaussians, keyframes, scene_radius, rng, state, frames_seen=int(poses.shape[0]))
+    return Checkpoint(tracking, mapping)

@@ -154,7 +154,7 @@ def _finish(
 ) -> dict[str, Any]:
     """Write trajectory, map and checkpoint, evaluate (unless the run was interrupted; a signal
     cuts it short), write metrics. OutputError where a file could not be written (a full disk)."""
-    session.saver.save_now(session.slam)
+    session.saver.save_now(session.slam.checkpoint())
     metrics = _metrics(session, dataset)
     results = session.sink.results
     earlier = session.folder.read_metrics() if not results else None  # a resume that only evaluates
@@ -214,7 +214,7 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
     if slam.frames_done == 0:
         return
     try:
-        saver.save_now(slam)
+        saver.save_now(slam.checkpoint())
     except OutputError as exc:
         log.error("%s", exc)
     metrics = _metrics(session, dataset)

@@ -196,7 +196,7 @@ def _save(session: Session, report: RuntimeReport) -> ServeResult:
     if session.slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
-    session.saver.save_now(session.slam)
+    session.saver.save_now(session.slam.checkpoint())
     metrics = _metrics(session, report)
     session.folder.write_metrics(metrics)
     return ServeResult(session.folder, metrics)

@@ -30,8 +30,9 @@ from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
 from pipeline.source import Source
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import FrameObserver, SlamStage, overlapped_stages, sequential_stages
+from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
 from pipeline.stages.upload import make_uploader
+from pipeline.stages.worker import ThreadedStage
 
 log = logging.getLogger("gsplatam")
 
@@ -109,7 +110,7 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    viewer = attach_viewer(config, slam, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
+    viewer = attach_viewer(config, slam.renderer, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
     saver = PeriodicSave(run_folder, save_every_s, earlier, stop_on_failure)
     sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
@@ -117,7 +118,7 @@ def open_session(
     return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
 
 
-def slam_stages(session: Session) -> list[SlamStage]:
+def slam_stages(session: Session) -> list[ThreadedStage]:
     """The SLAM stages of the configured schedule."""
     slam, source, schedule = session.slam, session.source, session.config.slam
     warm_up = source.live and switched_on(session.config.live.warm_up, session.device.type == "cuda")

@@ -17,11 +17,12 @@ from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.frontend import TrackedFrame, TrackerMark
-from pipeline.slam.gaussian_map import concatenate, most_opaque, seed_gaussians
+from pipeline.slam.gaussian_map import concatenate, copied, most_opaque, seed_gaussians
 from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping import MapSettings, map_window
 from pipeline.slam.results import FrameResult
+from pipeline.slam.state import BackendState
 from pipeline.slam.timing import StageClock
 
 MAP_BOUND_MARGIN = 0.9  # a map past mapping.max_gaussians is cut to this fraction of it
@@ -43,6 +44,35 @@ class MappingBackend:
         self.latest: MapVersion | None = None
         self.mark: TrackerMark | None = None  # the tracking side's state as of the last frame seen
         self.clock = StageClock(device)
+
+    def state(self) -> BackendState:
+        """A host copy of this side's state (after the last frame it was given)."""
+        assert self.gaussians is not None
+        return BackendState(
+            gaussians=copied(self.gaussians, "cpu"),
+            keyframes=[Keyframe(k.index, k.color_u8.cpu(), k.depth.cpu(), k.c2w.cpu()) for k in self.keyframes],
+            scene_radius=self.scene_radius,
+            rng_state=self.rng.getstate(),
+            generator_state=self.generator.get_state(),
+            frames_seen=self.frames_seen,
+        )
+
+    def restore(self, saved: BackendState, mark: TrackerMark) -> None:
+        """Continue from `saved`, the tracking side standing at `mark`; publishes the map."""
+        dev = self.device
+        self.gaussians = copied(saved.gaussians, dev)
+        self.keyframes = [
+            Keyframe(k.index, k.color_u8.to(dev), k.depth.to(dev), k.c2w.to(dev)) for k in saved.keyframes
+        ]
+        self.scene_radius = saved.scene_radius
+        self.rng.setstate(saved.rng_state)
+        self.generator.set_state(saved.generator_state)
+        every = self.config.keyframes.every
+        self.frames_seen = saved.frames_seen
+        self.last_keyframe_seen = (saved.frames_seen - 1) // every * every  # the cadence of an unbroken run
+        self.mark = mark
+        self.latest = None
+        self.publish()
 
     def map(self, tracked: TrackedFrame, is_last: bool = False) -> FrameResult:
         """Densify, select the window and optimise the map with the tracked frame; publish the

@@ -25,6 +25,7 @@ from pipeline.render import Gaussians
 from pipeline.slam.keyframes import Keyframe, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.results import FrameResult
+from pipeline.slam.state import FrontendState
 from pipeline.slam.timing import StageClock
 from pipeline.slam.tracking import Tracker
 
@@ -106,6 +107,40 @@ class TrackingFrontend:
     def frames_done(self) -> int:
         return len(self.poses)
 
+    def mark(self) -> TrackerMark:
+        """Where this side stands now (a checkpoint cut after the last frame tracked)."""
+        return TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
+
+    def state(self, mark: TrackerMark | None = None) -> FrontendState:
+        """A host copy of this side's state as of `mark` (default: now)."""
+        mark = mark or self.mark()
+        frames = mark.poses_done
+        return FrontendState(
+            poses=torch.stack(self.poses[:frames]).cpu() if frames else torch.zeros(0, 4, 4),
+            loss_history=list(self.loss_history[: mark.losses_done]),
+            last_prior=None if mark.prior is None else mark.prior.cpu(),
+            lost_frames=self._frames_in(TrackingState.LOST, frames),
+            relocalised_frames=self._frames_in(TrackingState.RELOCALISED, frames),
+        )
+
+    def _frames_in(self, state: TrackingState, frames: int) -> list[int]:
+        """Positions of the first `frames` poses whose tracking ended in `state`."""
+        return [i for i, s in enumerate(self.states[:frames]) if s is state]
+
+    def restore(self, saved: FrontendState) -> None:
+        """Continue after the frames of `saved` (their poses' times are not kept: the first
+        frames after it use the fixed jump limit and the whole velocity)."""
+        frames = saved.frames_done
+        self.poses = list(saved.poses.to(self.device))
+        self.timestamps = [None] * frames
+        self.loss_history = list(saved.loss_history)
+        states = dict.fromkeys(range(frames), TrackingState.TRACKED)
+        states |= dict.fromkeys(saved.relocalised_frames, TrackingState.RELOCALISED)
+        states |= dict.fromkeys(saved.lost_frames, TrackingState.LOST)
+        self.states = list(states.values())
+        self.last_good = max(set(range(frames)) - set(saved.lost_frames), default=-1)
+        self.last_prior = None if saved.last_prior is None else saved.last_prior.to(self.device)
+
     def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackedFrame:
         """Frame t against the latest map version (None: the first frame, where the map starts:
         its pose is the identity). Reads the frame's tracking scalars once per tracker run, to
@@ -131,8 +166,7 @@ class TrackingFrontend:
         if frame.received_at is not None:
             result.received_at = frame.received_at
             result.age_at_start_s = started - frame.received_at
-        mark = TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
-        return TrackedFrame(frame, attempt.c2w, result, mark, ready)
+        return TrackedFrame(frame, attempt.c2w, result, self.mark(), ready)
 
     def _initial_pose(self, frame: DeviceFrame) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last

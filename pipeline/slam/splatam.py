@@ -16,10 +16,8 @@ from pipeline.config import Config, switched_on
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer, make_views_renderer
 from pipeline.slam.backend import MappingBackend
-from pipeline.slam.frontend import TrackerMark, TrackingFrontend, TrackingState
-from pipeline.slam.gaussian_map import copied
+from pipeline.slam.frontend import TrackingFrontend
 from pipeline.slam.kernels import make_kernels
-from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.mapping import MapSettings
 from pipeline.slam.results import FrameResult
 from pipeline.slam.state import Checkpoint
@@ -83,47 +81,9 @@ class SplaTAM:
 
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run after the last frame mapped."""
-        back, mark = self.backend, self.backend.mark
-        assert back.gaussians is not None and mark is not None
-        return Checkpoint(
-            gaussians=copied(back.gaussians, "cpu"),
-            keyframes=[Keyframe(k.index, k.color_u8.cpu(), k.depth.cpu(), k.c2w.cpu()) for k in back.keyframes],
-            poses=torch.stack(self.frontend.poses[: mark.poses_done]).cpu(),
-            scene_radius=back.scene_radius,
-            loss_history=list(self.frontend.loss_history[: mark.losses_done]),
-            last_prior=None if mark.prior is None else mark.prior.cpu(),
-            rng_state=back.rng.getstate(),
-            generator_state=back.generator.get_state(),
-            lost_frames=self._frames_in(TrackingState.LOST, mark.poses_done),
-            relocalised_frames=self._frames_in(TrackingState.RELOCALISED, mark.poses_done),
-        )
-
-    def _frames_in(self, state: TrackingState, frames: int) -> list[int]:
-        """Positions of the first `frames` poses whose tracking ended in `state`."""
-        return [i for i, s in enumerate(self.frontend.states[:frames]) if s is state]
+        return Checkpoint(self.frontend.state(self.backend.mark), self.backend.state())
 
     def restore(self, saved: Checkpoint) -> None:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
-        dev, front, back = self.device, self.frontend, self.backend
-        front.poses = list(saved.poses.to(dev))
-        front.timestamps = [None] * saved.frames_done  # a checkpoint keeps poses, not their times
-        front.loss_history = list(saved.loss_history)
-        states = dict.fromkeys(range(saved.frames_done), TrackingState.TRACKED)
-        states |= dict.fromkeys(saved.relocalised_frames, TrackingState.RELOCALISED)
-        states |= dict.fromkeys(saved.lost_frames, TrackingState.LOST)
-        front.states = list(states.values())
-        front.last_good = max(set(range(saved.frames_done)) - set(saved.lost_frames), default=-1)
-        front.last_prior = None if saved.last_prior is None else saved.last_prior.to(dev)
-        back.gaussians = copied(saved.gaussians, dev)
-        back.keyframes = [
-            Keyframe(k.index, k.color_u8.to(dev), k.depth.to(dev), k.c2w.to(dev)) for k in saved.keyframes
-        ]
-        back.scene_radius = saved.scene_radius
-        back.rng.setstate(saved.rng_state)
-        back.generator.set_state(saved.generator_state)
-        every = self.config.keyframes.every
-        back.frames_seen = saved.frames_done
-        back.last_keyframe_seen = (saved.frames_done - 1) // every * every  # the cadence of an unbroken run
-        back.mark = TrackerMark(saved.frames_done, len(saved.loss_history), front.last_prior)
-        back.latest = None
-        back.publish()
+        self.frontend.restore(saved.tracking)
+        self.backend.restore(saved.mapping, self.frontend.mark())

@@ -13,8 +13,6 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
-from typing import Any
 
 import torch
 from torch.profiler import record_function
@@ -23,32 +21,14 @@ from pipeline.frame import DeviceFrame
 from pipeline.slam.frontend import TrackedFrame
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
+from pipeline.slam.view import SlamView
 from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.upload import UploadedFrame
+from pipeline.stages.worker import ThreadedStage
 
 log = logging.getLogger("gsplatam")
 
-FrameObserver = Callable[[SplaTAM, DeviceFrame, FrameResult], None]
-
-
-@dataclass
-class SlamStage:
-    """One SLAM stage for the runtime: its function, run in a thread of its own, and how it
-    takes its inbox. `pass_over`: a live stage's treatment of the items it does not process
-    because a newer one is waiting (None: every item is processed). `finish_on_stop`: after a
-    stop, process what is already in the inbox (mapping finishes the frames tracked)."""
-
-    name: str
-    run: Callable[[Any], Any]
-    spans: GpuSpans
-    pass_over: Callable[[Any], Any] | None = None
-    finish_on_stop: bool = False
-    interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
-    dropped: int = 0  # live: frames not started because a newer one was waiting, or used to warm up
-
-    def drop(self, item: Any) -> None:
-        """The pass-over of a live stage that takes frames: never start a stale frame."""
-        self.dropped += 1
+FrameObserver = Callable[[SlamView, DeviceFrame, FrameResult], None]
 
 
 @contextlib.contextmanager
@@ -124,12 +104,13 @@ def _never(frame: DeviceFrame) -> bool:
 
 def sequential_stages(
     slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], live: bool = False, warm_up: bool = False
-) -> list[SlamStage]:
+) -> list[ThreadedStage]:
     """Track and map each frame in one thread, on the thread's current stream. Live, a frame is
     started only when no newer one is waiting (the older ones are dropped and counted). With
     `warm_up` (live only) the first frame warms SLAM up and is dropped (`warm_up_on_first`)."""
     spans = GpuSpans(slam.device)
     warmed = warm_up_on_first(slam) if warm_up else _never
+    view = SlamView(slam)
 
     def step(uploaded: UploadedFrame) -> FrameResult | None:
         with record_function("slam_step"), spans.frame():
@@ -139,10 +120,10 @@ def sequential_stages(
                 return None
             result = slam.step(frame, is_last=frame.index == last_index)
         for observe in observers:
-            observe(slam, frame, result)
+            observe(view, frame, result)
         return result
 
-    stage = SlamStage("slam", step, spans)
+    stage = ThreadedStage("slam", step, spans)
     if live:
         stage.pass_over = stage.drop
     return [stage]
@@ -155,7 +136,7 @@ def overlapped_stages(
     max_lead: int,
     live: bool,
     warm_up: bool = False,
-) -> list[SlamStage]:
+) -> list[ThreadedStage]:
     """Tracking and mapping in two threads and two CUDA streams. Offline, tracking runs at most
     `max_lead` frames ahead of mapping; live, it never waits for mapping, and mapping takes the
     newest tracked frame, passing the older ones on unmapped; and tracking starts only the newest
@@ -165,6 +146,7 @@ def overlapped_stages(
     track_spans, map_spans = GpuSpans(slam.device), GpuSpans(slam.device)
     track_stream, map_stream = _stream_for(slam), _stream_for(slam)
     warmed = warm_up_on_first(slam) if warm_up else _never
+    view = SlamView(slam)
 
     def track(uploaded: UploadedFrame) -> TrackedFrame | None:
         with _on_stream(track_stream):
@@ -178,7 +160,7 @@ def overlapped_stages(
     def finish(tracked: TrackedFrame, result: FrameResult) -> FrameResult:
         gate.passed()
         for observe in observers:
-            observe(slam, tracked.frame, result)
+            observe(view, tracked.frame, result)
         return result
 
     def map_frame(tracked: TrackedFrame) -> FrameResult:
@@ -191,7 +173,10 @@ def overlapped_stages(
         with _on_stream(map_stream):
             return finish(tracked, slam.backend.skip(tracked))
 
-    tracking = SlamStage("tracking", track, track_spans, interrupt=gate.open)
+    tracking = ThreadedStage("tracking", track, track_spans, interrupt=gate.open)
     if live:
         tracking.pass_over = tracking.drop
-    return [tracking, SlamStage("mapping", map_frame, map_spans, pass_over=skip if live else None, finish_on_stop=True)]
+    return [
+        tracking,
+        ThreadedStage("mapping", map_frame, map_spans, pass_over=skip if live else None, finish_on_stop=True),
+    ]

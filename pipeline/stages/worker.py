@@ -15,107 +15,139 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.errors import StageFailure
+from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.queues import END, EndOfStream, StageQueue
 from pipeline.stages.stage import StageStats, frame_index
 
 
-async def dedicated_thread_stage(
-    name: str,
-    fn: Callable[[Any], Any],
-    inbox: StageQueue[Any],
-    outbox: StageQueue[Any],
-    stats: StageStats,
-    stop: asyncio.Event,
-    in_flight: int = 2,
-    pass_over: Callable[[Any], Any] | None = None,
-    finish_on_stop: bool = False,
-    interrupt: Callable[[], None] | None = None,
-) -> EndOfStream:
-    """Apply `fn` to every item in order in a thread of its own. At most `in_flight` items are
-    handed over or finished but not yet passed on (a bound on memory). Once `stop` is set the
-    thread finishes the item in hand and takes no other, unless `finish_on_stop` (then it goes
-    on to the inbox's end). With `pass_over`, of the items waiting in the inbox only the newest
-    goes to `fn`; the older ones go, in order, to `pass_over` (which may return None: dropped). `interrupt` is called when the
-    stage ends, to unblock an `fn` that waits for another stage. -> the end marker passed on (END,
-    or the StreamFailed of a stage before this one); a failure of `fn` itself is raised."""
-    loop = asyncio.get_running_loop()
-    handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `slots`; put never blocks
-    finished: asyncio.Queue[Any] = asyncio.Queue()
-    slots = asyncio.Semaphore(in_flight)
-    halted = threading.Event()
+@dataclass
+class ThreadedStage:
+    """A stage for the runtime that runs in a thread of its own: its function, and how it takes
+    its inbox. `pass_over`: a live stage's treatment of the items it does not process because a
+    newer one is waiting (None: every item is processed; it may return None: dropped).
+    `finish_on_stop`: after a stop, process what is already in the inbox (mapping finishes the
+    frames tracked)."""
 
-    def post(value: Any) -> None:
-        loop.call_soon_threadsafe(finished.put_nowait, value)
+    name: str
+    run: Callable[[Any], Any]
+    spans: GpuSpans
+    pass_over: Callable[[Any], Any] | None = None
+    finish_on_stop: bool = False
+    interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
+    dropped: int = 0  # live: frames not started because a newer one was waiting, or used to warm up
 
-    def run_batch(batch: list[Any]) -> list[Any]:
-        """The newest item through `fn`, the older ones (if any) through `pass_over`, in order."""
+    def drop(self, item: Any) -> None:
+        """The pass-over of a live stage that takes frames: never start a stale frame."""
+        self.dropped += 1
+
+
+class DedicatedThread:
+    """Applies `stage.run` to every item of `inbox` in order, in a thread of its own, and puts
+    the results in `outbox`. At most two items (one with `pass_over`: the newest is chosen when
+    it starts) are handed over or finished but not yet passed on, a bound on memory. Once `stop`
+    is set the thread finishes the item in hand and takes no other, unless `finish_on_stop`
+    (then it goes on to the inbox's end). With `pass_over`, of the items waiting only the newest
+    goes to `run`; the older ones go, in order, to `pass_over`."""
+
+    def __init__(
+        self,
+        stage: ThreadedStage,
+        inbox: StageQueue[Any],
+        outbox: StageQueue[Any],
+        stats: StageStats,
+        stop: asyncio.Event,
+    ) -> None:
+        self.stage = stage
+        self.inbox = inbox
+        self.outbox = outbox
+        self.stats = stats
+        self.stop = stop
+        self._handoff: queue.SimpleQueue[Any] = queue.SimpleQueue()  # bounded by `_slots`; put never blocks
+        self._halted = threading.Event()
+
+    async def run(self) -> EndOfStream:
+        """-> the end marker passed on (END, or the StreamFailed of a stage before this one); a
+        failure of the stage's function itself is raised. `stage.interrupt` is called when it
+        ends, to unblock a function that waits for another stage."""
+        loop = asyncio.get_running_loop()
+        finished: asyncio.Queue[Any] = asyncio.Queue()
+        slots = asyncio.Semaphore(1 if self.stage.pass_over else 2)
+
+        def post(value: Any) -> None:
+            loop.call_soon_threadsafe(finished.put_nowait, value)
+
+        thread = threading.Thread(target=self._work, args=(post,), name=f"{self.stage.name}-worker", daemon=True)
+        thread.start()
+        feeder = asyncio.create_task(self._feed(slots))
+        watcher = asyncio.create_task(self._halt_on_stop())
+        try:
+            while not isinstance(results := await finished.get(), EndOfStream):
+                if isinstance(results, StageFailure):
+                    raise results
+                for result in results:
+                    if result is not None:  # a passed-over item that is dropped
+                        await self.outbox.put(result)
+                slots.release()
+                if self._stopping():
+                    self._halted.set()
+        finally:
+            feeder.cancel()
+            watcher.cancel()
+            self._halted.set()
+            self.stage.interrupt()
+            self._handoff.put(END)  # wakes the worker if it waits for an item
+            await asyncio.to_thread(thread.join)
+        await self.outbox.put(results)
+        return results
+
+    def _run_batch(self, batch: list[Any]) -> list[Any]:
+        """The newest item through `run`, the older ones (if any) through `pass_over`, in order."""
+        pass_over = self.stage.pass_over
         results = []
         for item in batch[:-1]:
             assert pass_over is not None
             results.append(pass_over(item))
         start = time.perf_counter()
-        results.append(fn(batch[-1]))
-        stats.record(time.perf_counter() - start)
+        results.append(self.stage.run(batch[-1]))
+        self.stats.record(time.perf_counter() - start)
         return results
 
-    def work() -> None:
-        while not isinstance(batch := handoff.get(), EndOfStream) and not halted.is_set():
+    def _work(self, post: Callable[[Any], None]) -> None:
+        """The worker thread: batches until the end marker or a halt; a failure is posted to the
+        loop, which stops the graph."""
+        while not isinstance(batch := self._handoff.get(), EndOfStream) and not self._halted.is_set():
             try:
-                post(run_batch(batch))
-            except BaseException as exc:  # reported on the loop, which stops the graph
-                post(StageFailure(name, frame_index(batch[-1]), exc))
+                post(self._run_batch(batch))
+            except BaseException as exc:
+                post(StageFailure(self.stage.name, frame_index(batch[-1]), exc))
                 return
         post(batch if isinstance(batch, EndOfStream) else END)
 
-    def stopping() -> bool:
-        return stop.is_set() and not finish_on_stop
+    def _stopping(self) -> bool:
+        return self.stop.is_set() and not self.stage.finish_on_stop
 
-    async def feed() -> None:
+    async def _feed(self, slots: asyncio.Semaphore) -> None:
         """Hand over one batch per free slot: the next item, and with `pass_over` every item
         waiting behind it, so that the newest is the one processed."""
         while True:
             await slots.acquire()
-            waiting = [await inbox.get()]
-            if pass_over is not None:
-                waiting += inbox.take_ready()
+            waiting = [await self.inbox.get()]
+            if self.stage.pass_over is not None:
+                waiting += self.inbox.take_ready()
             ends = isinstance(waiting[-1], EndOfStream)  # END comes last, if at all
             batch = waiting[:-1] if ends else waiting
-            if batch and not stopping():
-                handoff.put(batch)
-            if ends or stopping():
-                handoff.put(waiting[-1] if ends and not stopping() else END)
+            if batch and not self._stopping():
+                self._handoff.put(batch)
+            if ends or self._stopping():
+                self._handoff.put(waiting[-1] if ends and not self._stopping() else END)
                 return
 
-    async def halt_on_stop() -> None:
+    async def _halt_on_stop(self) -> None:
         """The moment a stop is asked for, the worker takes no new item (not one more frame)."""
-        await stop.wait()
-        if not finish_on_stop:
-            halted.set()
-
-    thread = threading.Thread(target=work, name=f"{name}-worker", daemon=True)
-    thread.start()
-    feeder = asyncio.create_task(feed())
-    watcher = asyncio.create_task(halt_on_stop())
-    try:
-        while not isinstance(results := await finished.get(), EndOfStream):
-            if isinstance(results, StageFailure):
-                raise results
-            for result in results:
-                if result is not None:  # a passed-over item that is dropped
-                    await outbox.put(result)
-            slots.release()
-            if stopping():
-                halted.set()
-    finally:
-        feeder.cancel()
-        watcher.cancel()
-        halted.set()
-        if interrupt is not None:
-            interrupt()
-        handoff.put(END)  # wakes the worker if it waits for an item
-        await asyncio.to_thread(thread.join)
-    await outbox.put(results)
-    return results
+        await self.stop.wait()
+        if not self.stage.finish_on_stop:
+            self._halted.set()

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 import torch
-from conftest import ROOT, SMALL_SYNTH
+from conftest import ROOT, SMALL_SYNTH, make_checkpoint
 from live_helpers import wait_for
 
 from pipeline.app.cli import main
@@ -28,7 +28,6 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.trajectory import read_tum_trajectory
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.state import Checkpoint
 
 QUICK = [
     "--preset",
@@ -180,8 +179,7 @@ def _resumable_folder(tmp_path: Path, dataset: Path, run_info: dict[str, Any], k
     n, (width, height) = 5, keyframe_size
     keyframe = Keyframe(0, torch.zeros(height, width, 3, dtype=torch.uint8), torch.ones(height, width), torch.eye(4))
     gaussians = Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n, 1), torch.zeros(n), torch.rand(n, 3))
-    checkpoint = Checkpoint(gaussians, [keyframe], torch.eye(4).repeat(2, 1, 1), 1.0, [], None,
-                            random.Random(0).getstate(), torch.Generator().get_state())  # fmt: skip
+    checkpoint = make_checkpoint(gaussians, [keyframe], torch.eye(4).repeat(2, 1, 1))
     write_checkpoint(folder / "checkpoint.safetensors", checkpoint, run_info)
     return folder
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import make_checkpoint
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
@@ -27,15 +28,15 @@ def _checkpoint(frames: int = 3, prior: bool = True) -> Checkpoint:
     ]
     import random
 
-    return Checkpoint(
-        gaussians=gaussians,
-        keyframes=keyframes,
-        poses=torch.eye(4).repeat(frames, 1, 1),
+    return make_checkpoint(
+        gaussians,
+        keyframes,
+        torch.eye(4).repeat(frames, 1, 1),
         scene_radius=1.25,
         loss_history=[0.1, 0.2],
         last_prior=torch.eye(4) * 2 if prior else None,
         rng_state=random.Random(5).getstate(),
-        generator_state=g.get_state(),
+        generator=g,
     )
 
 
@@ -53,11 +54,13 @@ def test_a_checkpoint_round_trips_every_field(tmp_path: Path, prior: bool) -> No
         for a, b in zip(loaded.keyframes, saved.keyframes)
     )
     assert torch.equal(loaded.poses, saved.poses) and loaded.frames_done == 3
-    assert loaded.scene_radius == 1.25 and loaded.loss_history == [0.1, 0.2]
-    assert (loaded.last_prior is None) == (not prior)
+    assert loaded.mapping.scene_radius == 1.25 and loaded.tracking.loss_history == [0.1, 0.2]
+    assert (loaded.tracking.last_prior is None) == (not prior)
     if prior:
-        assert torch.equal(loaded.last_prior, saved.last_prior)
-    assert loaded.rng_state == saved.rng_state and torch.equal(loaded.generator_state, saved.generator_state)
+        assert torch.equal(loaded.tracking.last_prior, saved.tracking.last_prior)
+    assert loaded.mapping.rng_state == saved.mapping.rng_state
+    assert torch.equal(loaded.mapping.generator_state, saved.mapping.generator_state)
+    assert loaded.mapping.frames_seen == 3
     assert list(tmp_path.iterdir()) == [tmp_path / "c.safetensors"]  # no temporary file left
 
 

@@ -4,7 +4,6 @@ third-party readers (plyfile, Open3D) and checked against what the run holds."""
 from __future__ import annotations
 
 import json
-import random
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from conftest import make_checkpoint
 
 from pipeline.app.cli import main
 from pipeline.app.export import export_run
@@ -57,15 +57,8 @@ def write_gt_run(root: Path) -> Path:
             seeds = seed_gaussians(color, depth, k, c2w, depth > 0, GaussianConfig())
             gaussians = seeds if gaussians is None else concatenate(gaussians, seeds)
     assert gaussians is not None
-    checkpoint = Checkpoint(
-        gaussians=gaussians,
-        keyframes=keyframes,
-        poses=torch.stack([torch.from_numpy(f.c2w_gt).float() for f in frames]),
-        scene_radius=1.0,
-        loss_history=[],
-        last_prior=None,
-        rng_state=random.Random(0).getstate(),
-        generator_state=torch.Generator().get_state(),
+    checkpoint = make_checkpoint(
+        gaussians, keyframes, torch.stack([torch.from_numpy(f.c2w_gt).float() for f in frames])
     )
     (root / "run").mkdir()
     folder = RunFolder(root / "run")

@@ -11,6 +11,7 @@ from typing import IO
 import numpy as np
 import pytest
 import torch
+from conftest import make_checkpoint
 
 from pipeline.errors import OutputError
 from pipeline.io.outputs import atomic
@@ -52,8 +53,7 @@ def test_a_full_disk_at_fsync_leaves_no_temporary_file(tmp_path: Path, monkeypat
 def _checkpoint(frames: int) -> Checkpoint:
     n = 8
     gaussians = Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n, 1), torch.zeros(n), torch.rand(n, 3))
-    return Checkpoint(gaussians, [], torch.eye(4).repeat(frames, 1, 1), 1.0, [], None, (3, tuple(range(625)), None),
-                      torch.Generator().get_state())  # fmt: skip
+    return make_checkpoint(gaussians, [], torch.eye(4).repeat(frames, 1, 1))
 
 
 def test_a_full_disk_keeps_the_last_complete_save(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -123,7 +123,7 @@ def test_a_failing_save_is_reported_once_and_stops_only_a_run_that_asks(
             frame(2)
             frame(3)
             full[0] = False
-            saver.save_now(slam)  # type: ignore[arg-type]
+            saver.save_now(slam.checkpoint())
     errors = [r for r in caplog.records if r.levelno == logging.ERROR]
     assert len(errors) == 1 and "the last complete save (1 frames) is kept" in errors[0].getMessage()
     if stop_on_failure:
@@ -142,7 +142,7 @@ def test_a_final_save_that_fails_says_what_is_kept(tmp_path: Path, monkeypatch: 
 
     monkeypatch.setattr(RunFolder, "write_state", full)
     with pytest.raises(OutputError, match="No space left on device; nothing is saved yet"):
-        saver.save_now(_Slam())  # type: ignore[arg-type]
+        saver.save_now(_Slam().checkpoint())
 
 
 def test_frames_csv_keeps_the_rows_of_the_checkpointed_frames_and_drops_a_cut_line(tmp_path: Path) -> None:

@@ -14,7 +14,7 @@ from pipeline.runtime import Graph, run_graph, run_sync
 from pipeline.source import SourceCounters
 from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.queues import END, EndOfStream, StageQueue
-from pipeline.stages.slam import SlamStage
+from pipeline.stages.worker import ThreadedStage
 
 
 @dataclass
@@ -75,7 +75,7 @@ def jittery(item: Item) -> Item:
 
 
 def graph(n: int, slam: FakeSlam, decode=jittery, queue_size: int = 3) -> Graph:
-    stages = [SlamStage("slam", slam, GpuSpans(torch.device("cpu")))]
+    stages = [ThreadedStage("slam", slam, GpuSpans(torch.device("cpu")))]
     return Graph(ListSource(n, decode), jittery, stages, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
 
 
@@ -246,7 +246,7 @@ def test_a_live_graph_starts_only_the_newest_frame_and_counts_the_rest() -> None
         return item
 
     source = LiveSource(60, 0.01)
-    stage = SlamStage("slam", slam, GpuSpans(torch.device("cpu")))
+    stage = ThreadedStage("slam", slam, GpuSpans(torch.device("cpu")))
     stage.pass_over = stage.drop
     g = Graph(source, jittery, [stage], CollectSink(), queue_size=4)  # type: ignore[arg-type]
     report = run(g)

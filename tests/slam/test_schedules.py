@@ -149,8 +149,10 @@ def test_a_live_warm_up_drops_the_first_frame_and_leaves_no_trace(replica_seq: P
     assert warmed.gaussians is not None and cold.gaussians is not None
     assert _checksum(warmed.gaussians) == _checksum(cold.gaussians)
     ours, theirs = warmed.checkpoint(), cold.checkpoint()
-    assert ours.rng_state == theirs.rng_state and torch.equal(ours.generator_state, theirs.generator_state)
-    assert (ours.scene_radius, ours.loss_history) == (theirs.scene_radius, theirs.loss_history)
+    assert ours.mapping.rng_state == theirs.mapping.rng_state
+    assert torch.equal(ours.mapping.generator_state, theirs.mapping.generator_state)
+    assert ours.mapping.scene_radius == theirs.mapping.scene_radius
+    assert ours.tracking.loss_history == theirs.tracking.loss_history
     assert [k.index for k in ours.keyframes] == [k.index for k in theirs.keyframes]
     counters = ("frames_seen", "last_keyframe_seen")
     assert [getattr(warmed.backend, c) for c in counters] == [getattr(cold.backend, c) for c in counters]

@@ -20,7 +20,7 @@ from pipeline.io.outputs.atomic import atomic_write_bytes
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.state import Checkpoint
+from pipeline.slam.state import BackendState, Checkpoint, FrontendState
 
 FORMAT = "gsplatam.checkpoint"
 VERSION = 1
@@ -35,26 +35,28 @@ def write_checkpoint(path: Path, checkpoint: Checkpoint, run: dict[str, Any]) ->
 
 def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
     """The checkpoint file's bytes (see `write_checkpoint`)."""
-    tensors = {f"gaussians.{n}": getattr(checkpoint.gaussians, n).contiguous() for n in PARAMETER_NAMES}
-    for i, k in enumerate(checkpoint.keyframes):
+    tracking, mapping = checkpoint.tracking, checkpoint.mapping
+    tensors = {f"gaussians.{n}": getattr(mapping.gaussians, n).contiguous() for n in PARAMETER_NAMES}
+    for i, k in enumerate(mapping.keyframes):
         tensors.update(
             {f"keyframes.{i}.color_u8": k.color_u8, f"keyframes.{i}.depth": k.depth, f"keyframes.{i}.c2w": k.c2w}
         )
-    tensors["poses"] = checkpoint.poses
-    tensors["generator_state"] = checkpoint.generator_state
-    if checkpoint.last_prior is not None:
-        tensors["last_prior"] = checkpoint.last_prior
+    tensors["poses"] = tracking.poses
+    tensors["generator_state"] = mapping.generator_state
+    if tracking.last_prior is not None:
+        tensors["last_prior"] = tracking.last_prior
     header = {
         "format": FORMAT,
         "version": VERSION,
         "run": run,
         "frames_done": checkpoint.frames_done,
-        "keyframe_indices": [k.index for k in checkpoint.keyframes],
-        "scene_radius": checkpoint.scene_radius,
-        "loss_history": checkpoint.loss_history,
-        "lost_frames": checkpoint.lost_frames,
-        "relocalised_frames": checkpoint.relocalised_frames,
-        "rng_state": _json_rng_state(checkpoint.rng_state),
+        "frames_mapped": mapping.frames_seen,
+        "keyframe_indices": [k.index for k in mapping.keyframes],
+        "scene_radius": mapping.scene_radius,
+        "loss_history": tracking.loss_history,
+        "lost_frames": tracking.lost_frames,
+        "relocalised_frames": tracking.relocalised_frames,
+        "rng_state": _json_rng_state(mapping.rng_state),
     }
     return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
 
@@ -88,21 +90,26 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         )
         for i, index in enumerate(header["keyframe_indices"])
     ]
-    checkpoint = Checkpoint(
-        gaussians=Gaussians(**{n: tensors[f"gaussians.{n}"] for n in PARAMETER_NAMES}),
-        keyframes=keyframes,
+    tracking = FrontendState(
         poses=tensors["poses"],
-        scene_radius=float(header["scene_radius"]),
         loss_history=[float(v) for v in header["loss_history"]],
         last_prior=tensors.get("last_prior"),
-        rng_state=_rng_state_of(header["rng_state"]),
-        generator_state=tensors["generator_state"],
         lost_frames=[int(v) for v in header.get("lost_frames", [])],  # absent: written before they were kept
         relocalised_frames=[int(v) for v in header.get("relocalised_frames", [])],
     )
-    if checkpoint.frames_done != header["frames_done"]:
-        raise ValueError(f"{checkpoint.frames_done} poses for {header['frames_done']} frames")
-    return checkpoint
+    if tracking.frames_done != header["frames_done"]:
+        raise ValueError(f"{tracking.frames_done} poses for {header['frames_done']} frames")
+    mapping = BackendState(
+        gaussians=Gaussians(**{n: tensors[f"gaussians.{n}"] for n in PARAMETER_NAMES}),
+        keyframes=keyframes,
+        scene_radius=float(header["scene_radius"]),
+        rng_state=_rng_state_of(header["rng_state"]),
+        generator_state=tensors["generator_state"],
+        frames_seen=int(header.get("frames_mapped", header["frames_done"])),  # absent: mapping saw every frame
+    )
+    if not 0 <= mapping.frames_seen <= tracking.frames_done:
+        raise ValueError(f"{mapping.frames_seen} frames mapped of {tracking.frames_done}")
+    return Checkpoint(tracking, mapping)
 
 
 def _json_rng_state(state: tuple[Any, ...]) -> list[Any]:

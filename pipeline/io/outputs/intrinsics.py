@@ -11,7 +11,8 @@ import numpy as np
 from pipeline.errors import DataError
 from pipeline.frame import DeviceFrame
 from pipeline.io.outputs.atomic import atomic_write_text
-from pipeline.slam.splatam import FrameResult, SplaTAM
+from pipeline.slam.results import FrameResult
+from pipeline.slam.view import SlamView
 
 
 @dataclass(frozen=True)
@@ -64,7 +65,7 @@ class IntrinsicsRecorder:
         self.path = path
         self.written = False
 
-    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
+    def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
         if not self.written:
             k = frame.intrinsics.double().cpu().numpy()
             write_intrinsics(self.path, CameraIntrinsics.of_matrix(k, frame.width, frame.height))

@@ -14,8 +14,8 @@ from pipeline.errors import OutputError
 from pipeline.frame import DeviceFrame
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.slam.results import FrameResult
-from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
+from pipeline.slam.view import SlamView
 
 log = logging.getLogger("gsplatam")
 
@@ -45,7 +45,7 @@ class PeriodicSave:
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="save")
         self._pending: Future[bool] | None = None
 
-    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
+    def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
         reference = None if result.c2w_gt is None else result.c2w_gt.double().numpy()
         self.stamps.append((result.timestamp, reference))
         if self.error and self.stop_on_failure:
@@ -60,11 +60,11 @@ class PeriodicSave:
             log.error("cannot write %s in %s: %s; %s", what, self.folder.path, exc.strerror or exc, self._kept())
         self.error = f"cannot write {what} in {self.folder.path}: {exc.strerror or exc}"
 
-    def save_now(self, slam: SplaTAM) -> None:
-        """The final save (after SLAM stopped): waits for a save in progress, then writes.
-        Raises OutputError when it cannot write (the last complete save stays)."""
+    def save_now(self, checkpoint: Checkpoint) -> None:
+        """The final save (after SLAM stopped) of `checkpoint`: waits for a save in progress,
+        then writes. Raises OutputError when it cannot write (the last complete save stays)."""
         self.close()
-        if not self._save(slam.checkpoint(), self.stamps):
+        if not self._save(checkpoint, self.stamps):
             raise OutputError(f"{self.error}; {self._kept()}")
 
     def wait(self) -> None:

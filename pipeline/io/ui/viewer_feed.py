@@ -28,7 +28,7 @@ from pipeline.io.ui.display import FrameView, MapDisplay, MapView, colorize_dept
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.results import FrameResult
-from pipeline.slam.splatam import SplaTAM
+from pipeline.slam.view import SlamView
 
 log = logging.getLogger("gsplatam")
 
@@ -95,11 +95,11 @@ class ViewerFeed:
         self._previous_frame_at: float | None = None
         self._fps = 0.0
         self._stream: torch.cuda.Stream | None = None
-        self._latest: tuple[SplaTAM, DeviceFrame, FrameResult] | None = None
+        self._latest: tuple[SlamView, DeviceFrame, FrameResult] | None = None
         self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
         self._thread.start()
 
-    def __call__(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> None:
+    def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
         now = time.perf_counter()
         if self._previous_frame_at is not None:
             self._fps = 1.0 / max(now - self._previous_frame_at, 1e-9)
@@ -120,7 +120,7 @@ class ViewerFeed:
         self._last = now
         self._handoff.put_nowait(self._snapshot(slam, frame, result))
 
-    def _snapshot(self, slam: SplaTAM, frame: DeviceFrame, result: FrameResult) -> Snapshot:
+    def _snapshot(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> Snapshot:
         """Clones of the map and poses on the device (then SLAM may go on)."""
         assert slam.gaussians is not None
         cuda = frame.depth.is_cuda
@@ -248,7 +248,7 @@ class ViewerFeed:
         self.viewer.close()
 
 
-def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> ViewerFeed | None:
+def attach_viewer(config: Config, renderer: Renderer, folder: RunFolder, title: str) -> ViewerFeed | None:
     """Start the viewer of `config.viewer.kind` when `config.viewer.enabled`; -> the observer to
     give the SLAM stage."""
     if not config.viewer.enabled:
@@ -263,7 +263,7 @@ def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) 
         from pipeline.io.ui.viewer import Viewer
 
         viewer = Viewer(v.host, v.port, title)
-    return ViewerFeed(viewer, slam.renderer, config.render, v.max_hz, folder, v.map_every_s)
+    return ViewerFeed(viewer, renderer, config.render, v.max_hz, folder, v.map_every_s)
 
 
 async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:

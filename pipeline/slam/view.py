@@ -1,0 +1,55 @@
+"""What observers of SLAM (periodic saves, viewers, recorders) may read at a frame boundary."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+
+from pipeline.render.types import Gaussians
+from pipeline.slam.state import Checkpoint
+
+
+class PublishedSlam(Protocol):
+    """The state a SLAM schedule publishes; `SlamView` shows it to observers."""
+
+    @property
+    def frames_done(self) -> int: ...
+
+    @property
+    def gaussians(self) -> Gaussians | None: ...
+
+    @property
+    def poses(self) -> list[torch.Tensor]: ...
+
+    def checkpoint(self) -> Checkpoint: ...
+
+
+class SlamView:
+    """A read-only view of a published SLAM state: observers see the frames done, the latest map
+    version, the poses and a checkpoint on request, never the object that runs SLAM (which may
+    live in another thread or, in part, another process)."""
+
+    __slots__ = ("_slam",)
+
+    def __init__(self, slam: PublishedSlam) -> None:
+        self._slam = slam
+
+    @property
+    def frames_done(self) -> int:
+        """Frames the published state holds (those mapping has passed)."""
+        return self._slam.frames_done
+
+    @property
+    def gaussians(self) -> Gaussians | None:
+        """The latest published map (None before the first frame); never modified once published."""
+        return self._slam.gaussians
+
+    @property
+    def poses(self) -> list[torch.Tensor]:
+        """[4, 4] camera-to-world per frame done."""
+        return self._slam.poses
+
+    def checkpoint(self) -> Checkpoint:
+        """A host copy of everything needed to continue the run from here."""
+        return self._slam.checkpoint()
