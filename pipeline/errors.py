@@ -21,3 +21,8 @@ class StageFailure(Exception):
 
 class OutputError(UserError):
     """A run folder that cannot be written (a full disk, no permission)."""
+
+
+class MappingProcessFailed(Exception):
+    """The mapping process died, hung or failed (the process schedule): not the user's doing; the
+    run writes what it has and ends with exit code 1."""

@@ -15,7 +15,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from pipeline import __version__
 from pipeline.app.logs import configure_logging
 from pipeline.config.schema import SYNTHETIC_CPU, SYNTHETIC_GPU
-from pipeline.errors import StageFailure, UserError
+from pipeline.errors import MappingProcessFailed, StageFailure, UserError
 from pipeline.extras import missing_extra
 from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
 
@@ -469,6 +469,11 @@ def main(argv: list[str] | None = None) -> int:
     except StageFailure as exc:
         if isinstance(exc.cause, UserError):
             return _fail(str(exc))
+        if isinstance(exc.cause, MappingProcessFailed):  # what was processed is written: exit 1, not 2
+            print(
+                f"gsplatam: error: {exc.cause}; what was processed is saved (continue with --resume)", file=sys.stderr
+            )
+            return 1
         if isinstance(exc.cause, ImportError) and (message := missing_extra(exc.cause)):
             return _fail(f"stage '{exc.stage}': {message}")
         raise

@@ -69,12 +69,14 @@ def run_slam(
         try:
             with signals_noted() as signalled:
                 report = _execute(session, dataset, profile_trace)
+                before_final = _map_to_the_end(session, dataset, report, signalled, progress)
                 if session.slam.gaussians is None:
                     if report.interrupted:
                         log.info("interrupted before the first frame was processed: nothing to write")
                         return RunResult(session.folder, None)
                     raise UserError("no frame was processed")
                 metrics = _finish(session, dataset, report, signalled, progress)
+                metrics["render_before_final_iters"] = before_final
             ate, render = metrics["ate"] or {}, metrics["render"] or {}
             summary = run_summary(metrics["frames"], metrics["gaussians"], ate.get("rmse_cm"), render.get("psnr_db"))
             session.linger(summary + f"\n\nin {session.folder.path}")
@@ -119,6 +121,23 @@ def _execute(session: Session, dataset: Dataset, profile_trace: bool) -> Runtime
     except StageFailure as failure:
         _write_after_failure(session, dataset, failure)
         raise
+
+
+def _map_to_the_end(
+    session: Session, dataset: Dataset, report: RuntimeReport, signalled: threading.Event, progress: bool
+) -> dict[str, Any] | None:
+    """Let mapping finish the frames it was given, then, unless SLAM was interrupted or did not
+    run, refine over every keyframe (`mapping.final_iters` view renders). -> the render metrics
+    before that refinement (None without it)."""
+    final = session.config.mapping.final_iters if session.sink.results and not report.interrupted else 0
+    before = None
+    if final and session.slam.frames_done:
+        session.slam.finish(0)
+        before, _ = _render_metrics(session, dataset, signalled, progress)
+    renders = session.slam.finish(final)
+    if renders:
+        log.info("final refinement: %d view renders over every keyframe (mapping.final_iters)", renders)
+    return before
 
 
 def _default_name(dataset: Dataset, config: Config) -> str:
@@ -191,6 +210,7 @@ def _metrics(session: Session, dataset: Dataset) -> dict[str, Any]:
         "relocalised_frames": sink.relocalised_frames,
         "unmapped_frames": sink.unmapped_frames,
         "schedule": config.slam.schedule,
+        "mapping_process": slam.mapping_summary(),
         "device": describe(device, config),
         "versions": versions(),
         "stopped": None,
@@ -211,7 +231,7 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
     """Write what was processed before `failure` ended the run, and mark where and why it stopped
     in metrics.json; a write that fails too is logged (the failure is what the user sees)."""
     slam, saver = session.slam, session.saver
-    if slam.frames_done == 0:
+    if slam.frames_done == 0 or slam.gaussians is None:
         return
     try:
         saver.save_now(slam.checkpoint())

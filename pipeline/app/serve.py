@@ -193,6 +193,7 @@ def serve(
 
 def _save(session: Session, report: RuntimeReport) -> ServeResult:
     """The final save (map, trajectory, checkpoint) and metrics.json."""
+    session.slam.finish(0)  # the frames mapping was given
     if session.slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
@@ -214,6 +215,8 @@ def _metrics(session: Session, report: RuntimeReport) -> dict[str, Any]:
         "lost_frames": sink.lost_frames,
         "relocalised_frames": sink.relocalised_frames,
         "unmapped_frames": sink.unmapped_frames,
+        "schedule": config.slam.schedule,
+        "mapping_process": slam.mapping_summary(),
         "counters": vars(source.counters),
         "device": describe(session.device, config),
         "versions": versions(),

@@ -26,8 +26,10 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
+from pipeline.slam.process.schedule import ProcessSplaTAM
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
+from pipeline.slam.view import SteppedSlam
 from pipeline.source import Source
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
@@ -49,7 +51,7 @@ class Session:
     config: Config
     device: torch.device
     folder: RunFolder
-    slam: SplaTAM
+    slam: SteppedSlam
     source: Source
     sink: ResultSink
     intrinsics: IntrinsicsRecorder
@@ -64,9 +66,11 @@ class Session:
             self.viewer.linger(summary)
 
     def close(self) -> None:
-        """Close the viewer (safe to call twice); the rest closes when the graph ends."""
+        """Close the viewer and end SLAM (a mapping process); safe to call twice. The rest closes
+        when the graph ends."""
         if self.viewer is not None:
             self.viewer.close()
+        self.slam.close()
 
     @property
     def observers(self) -> list[FrameObserver]:
@@ -103,7 +107,7 @@ def open_session(
     run_folder = RunFolder(folder, run_info)
     run_folder.write_config(config)
     log.info("device: %s; run folder: %s", describe(device, config), run_folder.path)
-    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
+    slam = _slam_of(config, source, device)
     initial = 0
     if resume is not None:
         slam.restore(resume)
@@ -118,11 +122,20 @@ def open_session(
     return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
 
 
+def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSlam:
+    """SLAM of the configured schedule: mapping in this process, or in one of its own."""
+    renderer = make_renderer(config.render, config.gaussians, device)
+    if config.slam.schedule == "process":
+        return ProcessSplaTAM(config, renderer, device, source.live)
+    return SplaTAM(config, renderer, device)
+
+
 def slam_stages(session: Session) -> list[ThreadedStage]:
     """The SLAM stages of the configured schedule."""
     slam, source, schedule = session.slam, session.source, session.config.slam
     warm_up = source.live and switched_on(session.config.live.warm_up, session.device.type == "cuda")
     if schedule.schedule == "overlapped":
+        assert isinstance(slam, SplaTAM)
         return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live, warm_up)
     return sequential_stages(slam, source.last_index, session.observers, source.live, warm_up)
 

@@ -105,6 +105,9 @@ class MappingConfig:
     max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
     views_per_step: int = 1  # keyframe views rendered together per optimiser step (the same renders in all)
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
+    refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
+    refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
+    final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
 
 
 @dataclass(frozen=True)
@@ -151,15 +154,16 @@ class RenderConfig:
     far: float = 100.0  # far plane, metres
 
 
-Schedule = Literal["sequential", "overlapped"]
+Schedule = Literal["sequential", "overlapped", "process"]
 
 
 @dataclass(frozen=True)
 class SlamConfig:
     """How tracking and mapping share the frames."""
 
-    schedule: Schedule = "sequential"  # overlapped: tracking and mapping as two concurrent stages
-    max_lead: int = 2  # overlapped, offline: frames tracking may run ahead of mapping (live: no bound)
+    schedule: Schedule = "sequential"  # overlapped: two threads; process: mapping in a process of its own
+    max_lead: int = 2  # overlapped and process, offline: frames tracking may run ahead of mapping (live: no bound)
+    backend_timeout_s: float = 60.0  # process: a mapping process silent for this long is taken as hung
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ frames when mapping falls behind (`skip`): both are passed on with their poses, 
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 
@@ -20,12 +22,18 @@ from pipeline.slam.frontend import TrackedFrame, TrackerMark
 from pipeline.slam.gaussian_map import concatenate, copied, most_opaque, seed_gaussians
 from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
 from pipeline.slam.map_version import MapVersion
-from pipeline.slam.mapping import MapSettings, map_window
+from pipeline.slam.mapping import MapSettings, WindowPlan, map_window, optimise_window
 from pipeline.slam.results import FrameResult
 from pipeline.slam.state import BackendState
 from pipeline.slam.timing import StageClock
 
 MAP_BOUND_MARGIN = 0.9  # a map past mapping.max_gaussians is cut to this fraction of it
+
+
+def scene_radius_of(depth: torch.Tensor, config: Config) -> float:
+    """The scene's radius (metres) from the first frame's depth [H, W]: its largest depth over
+    `mapping.scene_radius_divisor` (one host read)."""
+    return float(depth.max()) / config.mapping.scene_radius_divisor
 
 
 class MappingBackend:
@@ -43,6 +51,8 @@ class MappingBackend:
         self.last_keyframe_seen = -config.keyframes.every  # frames_seen when the last keyframe was taken
         self.latest: MapVersion | None = None
         self.mark: TrackerMark | None = None  # the tracking side's state as of the last frame seen
+        self.intrinsics: torch.Tensor | None = None  # [3, 3] the frames' camera (one per run), once mapped
+        self._cycle: list[int] = []  # keyframe indices still to visit in this round of refinement passes
         self.clock = StageClock(device)
 
     def state(self) -> BackendState:
@@ -50,7 +60,9 @@ class MappingBackend:
         assert self.gaussians is not None
         return BackendState(
             gaussians=copied(self.gaussians, "cpu"),
-            keyframes=[Keyframe(k.index, k.color_u8.cpu(), k.depth.cpu(), k.c2w.cpu()) for k in self.keyframes],
+            keyframes=[
+                replace(k, color_u8=k.color_u8.cpu(), depth=k.depth.cpu(), c2w=k.c2w.cpu()) for k in self.keyframes
+            ],
             scene_radius=self.scene_radius,
             rng_state=self.rng.getstate(),
             generator_state=self.generator.get_state(),
@@ -62,7 +74,7 @@ class MappingBackend:
         dev = self.device
         self.gaussians = copied(saved.gaussians, dev)
         self.keyframes = [
-            Keyframe(k.index, k.color_u8.to(dev), k.depth.to(dev), k.c2w.to(dev)) for k in saved.keyframes
+            replace(k, color_u8=k.color_u8.to(dev), depth=k.depth.to(dev), c2w=k.c2w.to(dev)) for k in saved.keyframes
         ]
         self.scene_radius = saved.scene_radius
         self.rng.setstate(saved.rng_state)
@@ -80,6 +92,7 @@ class MappingBackend:
         if tracked.result.lost:
             return self.skip(tracked)
         frame, c2w = tracked.frame, tracked.c2w
+        self.intrinsics = frame.intrinsics
         if tracked.ready is not None:
             torch.cuda.current_stream().wait_event(tracked.ready)
             for tensor in (frame.color, frame.depth, frame.intrinsics, c2w):
@@ -91,7 +104,7 @@ class MappingBackend:
             else:
                 added = self._densify(frame, c2w)
                 window = self._window(frame, c2w)
-        current = Keyframe.of(frame.index, frame.color, frame.depth, c2w)
+        current = Keyframe.of(frame.index, frame.color, frame.depth, c2w, tracked.mark.poses_done - 1)
         with self.clock.stage("mapping"):
             self._map(window + [current], frame.intrinsics)
         if self.frames_seen - self.last_keyframe_seen >= self.config.keyframes.every or is_last:
@@ -116,6 +129,40 @@ class MappingBackend:
         limit = self.config.mapping.max_gaussians
         if limit and self.gaussians is not None and len(self.gaussians) > limit:
             self.gaussians = most_opaque(self.gaussians, int(MAP_BOUND_MARGIN * limit))
+
+    def refine(self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0) -> int:
+        """A refinement pass: `renders` view renders over `views` stored keyframes (0: as many as
+        `mapping.window`) taken from a shuffled cycle through all of them, so that every keyframe
+        is revisited; their poses are optimised too (`mapping.refine_pose_lr`; the first keyframe
+        stays: it fixes the map's frame). Publishes the result; `should_stop` ends it early (a
+        frame waits). -> the renders done (0 before the first frame)."""
+        if self.gaussians is None or self.intrinsics is None or renders <= 0:
+            return 0
+        positions = self._refinement_views(views or self.config.mapping.window)
+        chosen = [self.keyframes[p] for p in positions]
+        fixed = frozenset(i for i, p in enumerate(positions) if p == 0)
+        plan = WindowPlan(renders, should_stop, self.config.mapping.refine_pose_lr, fixed)
+        radius = self.scene_radius
+        result = optimise_window(self.gaussians, chosen, self.intrinsics, radius, self.rng, self.settings, plan)
+        self.gaussians = result.gaussians
+        for position, c2w in zip(positions, result.c2w):
+            self.keyframes[position] = replace(self.keyframes[position], c2w=c2w)
+        self.publish()
+        return result.renders
+
+    def _refinement_views(self, count: int) -> list[int]:
+        """Positions of the next `count` keyframes of the refinement cycle."""
+        where = {k.index: i for i, k in enumerate(self.keyframes)}
+        wanted = min(count, len(self.keyframes))
+        picks: list[int] = []
+        while len(picks) < wanted:
+            if not self._cycle:
+                self._cycle = list(where)
+                self.rng.shuffle(self._cycle)
+            position = where.get(self._cycle.pop())  # None: dropped from the store since
+            if position is not None and position not in picks:
+                picks.append(position)
+        return picks
 
     def skip(self, tracked: TrackedFrame) -> FrameResult:
         """Pass a tracked frame on without mapping it."""
@@ -143,13 +190,13 @@ class MappingBackend:
             ready = torch.cuda.Event()
             ready.record()
         number = 1 if self.latest is None else self.latest.number + 1
-        self.latest = MapVersion(number, self.gaussians, ready, tuple(self.keyframes))
+        self.latest = MapVersion(number, self.gaussians, ready, tuple(k.pose for k in self.keyframes))
 
     def _initialise(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:
         """Seed the map from every valid-depth pixel of the first frame; -> Gaussians added."""
         valid = frame.depth > 0
         self.gaussians = seed_gaussians(frame.color, frame.depth, frame.intrinsics, c2w, valid, self.config.gaussians)
-        self.scene_radius = float(frame.depth.max()) / self.config.mapping.scene_radius_divisor
+        self.scene_radius = scene_radius_of(frame.depth, self.config)
         return len(self.gaussians)
 
     def _densify(self, frame: DeviceFrame, c2w: torch.Tensor) -> int:

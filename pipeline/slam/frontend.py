@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 
@@ -22,7 +23,7 @@ from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
 from pipeline.render import Gaussians
-from pipeline.slam.keyframes import Keyframe, relocalisation_picks
+from pipeline.slam.keyframes import KeyframePose, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.results import FrameResult
 from pipeline.slam.state import FrontendState
@@ -107,16 +108,26 @@ class TrackingFrontend:
     def frames_done(self) -> int:
         return len(self.poses)
 
+    def poses_with(self, keyframes: Sequence[KeyframePose], frames: int | None = None) -> list[torch.Tensor]:
+        """The first `frames` poses (default: all), each keyframe's replaced by the mapping
+        side's (refined by its passes)."""
+        poses = self.poses[:frames]
+        for keyframe in keyframes:
+            if keyframe.position < len(poses):
+                poses[keyframe.position] = keyframe.c2w
+        return poses
+
     def mark(self) -> TrackerMark:
         """Where this side stands now (a checkpoint cut after the last frame tracked)."""
         return TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
 
-    def state(self, mark: TrackerMark | None = None) -> FrontendState:
-        """A host copy of this side's state as of `mark` (default: now)."""
+    def state(self, mark: TrackerMark | None = None, keyframes: Sequence[KeyframePose] = ()) -> FrontendState:
+        """A host copy of this side's state as of `mark` (default: now), with the mapping side's
+        `keyframes` poses (`poses_with`)."""
         mark = mark or self.mark()
         frames = mark.poses_done
         return FrontendState(
-            poses=torch.stack(self.poses[:frames]).cpu() if frames else torch.zeros(0, 4, 4),
+            poses=torch.stack(self.poses_with(keyframes, frames)).cpu() if frames else torch.zeros(0, 4, 4),
             loss_history=list(self.loss_history[: mark.losses_done]),
             last_prior=None if mark.prior is None else mark.prior.cpu(),
             lost_frames=self._frames_in(TrackingState.LOST, frames),
@@ -213,7 +224,7 @@ class TrackingFrontend:
         return Attempt(c2w, verdict, keyframe)
 
     def _relocalise(
-        self, gaussians: Gaussians, frame: DeviceFrame, keyframes: tuple[Keyframe, ...], lost: Attempt
+        self, gaussians: Gaussians, frame: DeviceFrame, keyframes: Sequence[KeyframePose], lost: Attempt
     ) -> Attempt:
         """A frame judged lost from the usual guess (the last good pose, or the device's motion
         from it), tracked again from the poses of at most `relocalise_candidates` keyframes,

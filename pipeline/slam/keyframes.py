@@ -9,6 +9,15 @@ import torch
 from pipeline.geometry import backproject, invert_pose, pixel_grid, project
 
 
+@dataclass(frozen=True)
+class KeyframePose:
+    """A keyframe as tracking sees it in a map version: where it is, not its images."""
+
+    index: int  # the frame's index
+    c2w: torch.Tensor  # [4, 4] camera-to-world
+    position: int  # the frame's position among the run's poses
+
+
 @dataclass
 class Keyframe:
     """A frame kept for mapping. Colour is stored as 8-bit (what the camera gave): a quarter of
@@ -18,11 +27,16 @@ class Keyframe:
     color_u8: torch.Tensor  # [H, W, 3] uint8
     depth: torch.Tensor  # [H, W] metres
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world
+    position: int = -1  # the frame's position among the run's poses; -1: its index (datasets: the same)
 
     @staticmethod
-    def of(index: int, color: torch.Tensor, depth: torch.Tensor, c2w: torch.Tensor) -> Keyframe:
+    def of(index: int, color: torch.Tensor, depth: torch.Tensor, c2w: torch.Tensor, position: int = -1) -> Keyframe:
         """From a float colour image [H, W, 3] in [0, 1]."""
-        return Keyframe(index, (color * 255).round_().to(torch.uint8), depth, c2w)
+        return Keyframe(index, (color * 255).round_().to(torch.uint8), depth, c2w, position)
+
+    @property
+    def pose(self) -> KeyframePose:
+        return KeyframePose(self.index, self.c2w, self.position if self.position >= 0 else self.index)
 
     @property
     def color(self) -> torch.Tensor:

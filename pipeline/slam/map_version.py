@@ -14,7 +14,7 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
-from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.keyframes import KeyframePose
 
 
 @dataclass(frozen=True)
@@ -22,7 +22,7 @@ class MapVersion:
     number: int  # increases by one with every mapped frame
     gaussians: Gaussians  # detached; never modified after publishing
     ready: torch.cuda.Event | None  # recorded on mapping's stream when the version was complete
-    keyframes: tuple[Keyframe, ...] = ()  # the keyframe store as of this version (relocalisation's poses)
+    keyframes: tuple[KeyframePose, ...] = ()  # the keyframe store's poses as of this version (relocalisation)
 
     def for_current_stream(self) -> Gaussians:
         """The Gaussians, safe to use on the calling thread's CUDA stream: it waits (on the GPU,

@@ -9,19 +9,18 @@ tracking state up to that frame.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import torch
 
-from pipeline.config import Config, switched_on
+from pipeline.config import Config
 from pipeline.frame import DeviceFrame
-from pipeline.render import Gaussians, Renderer, make_views_renderer
+from pipeline.render import Gaussians, Renderer
 from pipeline.slam.backend import MappingBackend
 from pipeline.slam.frontend import TrackingFrontend
-from pipeline.slam.kernels import make_kernels
-from pipeline.slam.mapping import MapSettings
 from pipeline.slam.results import FrameResult
+from pipeline.slam.sides import mapping_settings, tracker_for
 from pipeline.slam.state import Checkpoint
-from pipeline.slam.tracking import TrackSettings, make_tracker
 
 WARM_UP_FRAMES = 2  # the first frame runs mapping only, the second tracking too
 
@@ -31,12 +30,8 @@ class SplaTAM:
         self.config = config
         self.renderer = renderer
         self.device = device
-        cuda = device.type == "cuda"
-        kernels = make_kernels(switched_on(config.run.compile, cuda))
-        near, far = config.render.near, config.render.far
-        self._tracker = make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
-        views = make_views_renderer(config.render, config.gaussians, device)
-        self._map_settings = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
+        self._tracker = tracker_for(config, renderer, device)
+        self._map_settings = mapping_settings(config, renderer, device)
         self._start_afresh()
 
     def _start_afresh(self) -> None:
@@ -60,12 +55,24 @@ class SplaTAM:
     @property
     def poses(self) -> list[torch.Tensor]:
         """[4, 4] camera-to-world of every frame mapping has passed."""
-        return self.frontend.poses[: self.frames_done]
+        return self.frontend.poses_with([k.pose for k in self.backend.keyframes], self.frames_done)
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track one frame (colour, depth and intrinsics on the device) and map it."""
         tracked = self.frontend.track(frame, self.backend.latest)
         return self.backend.map(tracked, is_last)
+
+    def finish(self, final_renders: int) -> int:
+        """After the last frame: `final_renders` view renders of refinement over every keyframe
+        (`mapping.final_iters`), published. -> the renders done."""
+        return self.backend.refine(final_renders, views=len(self.backend.keyframes))
+
+    def mapping_summary(self) -> dict[str, Any] | None:
+        """Mapping runs on the frame clock here: frames.csv says what it did per frame."""
+        return None
+
+    def close(self) -> None:
+        """Nothing runs beside the caller's threads: nothing to stop."""
 
     def warm_up(self, frame: DeviceFrame) -> None:
         """Map `frame` and track it against that map, as the first two frames of a scratch run,
@@ -81,7 +88,8 @@ class SplaTAM:
 
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run after the last frame mapped."""
-        return Checkpoint(self.frontend.state(self.backend.mark), self.backend.state())
+        keyframes = [k.pose for k in self.backend.keyframes]
+        return Checkpoint(self.frontend.state(self.backend.mark, keyframes), self.backend.state())
 
     def restore(self, saved: Checkpoint) -> None:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""

@@ -1,12 +1,18 @@
-"""What observers of SLAM (periodic saves, viewers, recorders) may read at a frame boundary."""
+"""What observers of SLAM (periodic saves, viewers, recorders) may read at a frame boundary, and
+what the SLAM stage and the commands use of a SLAM schedule."""
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 
+from pipeline.config import Config
+from pipeline.frame import DeviceFrame
+from pipeline.render import Renderer
 from pipeline.render.types import Gaussians
+from pipeline.slam.frontend import TrackingFrontend
+from pipeline.slam.results import FrameResult
 from pipeline.slam.state import Checkpoint
 
 
@@ -53,3 +59,25 @@ class SlamView:
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run from here."""
         return self._slam.checkpoint()
+
+
+class SteppedSlam(PublishedSlam, Protocol):
+    """What the SLAM stage and the commands use of a SLAM schedule that takes one frame at a
+    time: SplaTAM (tracking and mapping in this process) or ProcessSplaTAM (mapping in its own)."""
+
+    config: Config
+    renderer: Renderer
+    device: torch.device
+    frontend: TrackingFrontend
+
+    def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult: ...
+
+    def warm_up(self, frame: DeviceFrame) -> None: ...
+
+    def restore(self, saved: Checkpoint) -> None: ...
+
+    def finish(self, final_renders: int) -> int: ...
+
+    def mapping_summary(self) -> dict[str, Any] | None: ...
+
+    def close(self) -> None: ...

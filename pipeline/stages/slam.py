@@ -1,5 +1,6 @@
-"""The SLAM stages: SplaTAM per frame in one thread (the sequential schedule), or tracking and
-mapping in two threads with their own CUDA streams (the overlapped schedule).
+"""The SLAM stages: SLAM per frame in one thread (the sequential schedule, and the process
+schedule, whose mapping runs in a process of its own), or tracking and mapping in two threads
+with their own CUDA streams (the overlapped schedule).
 
 Observers run after each frame in the thread that finished it, at the one moment the published
 map and the poses up to that frame are consistent (periodic saves, viewer snapshots); they must
@@ -21,7 +22,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.slam.frontend import TrackedFrame
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.view import SlamView
+from pipeline.slam.view import SlamView, SteppedSlam
 from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.upload import UploadedFrame
 from pipeline.stages.worker import ThreadedStage
@@ -78,7 +79,7 @@ class LeadGate:
             self._changed.notify_all()
 
 
-def warm_up_on_first(slam: SplaTAM) -> Callable[[DeviceFrame], bool]:
+def warm_up_on_first(slam: SteppedSlam) -> Callable[[DeviceFrame], bool]:
     """-> `warmed(frame)`: the first call, before any frame was tracked, warms SLAM up on `frame`
     (`SplaTAM.warm_up`) and returns True: the stage drops that frame and takes the newest next.
     Later calls return False."""
@@ -103,7 +104,11 @@ def _never(frame: DeviceFrame) -> bool:
 
 
 def sequential_stages(
-    slam: SplaTAM, last_index: int | None, observers: Sequence[FrameObserver], live: bool = False, warm_up: bool = False
+    slam: SteppedSlam,
+    last_index: int | None,
+    observers: Sequence[FrameObserver],
+    live: bool = False,
+    warm_up: bool = False,
 ) -> list[ThreadedStage]:
     """Track and map each frame in one thread, on the thread's current stream. Live, a frame is
     started only when no newer one is waiting (the older ones are dropped and counted). With

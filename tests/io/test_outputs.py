@@ -80,6 +80,10 @@ class _Slam:
     def __init__(self) -> None:
         self.frames = 0
 
+    @property
+    def gaussians(self) -> Gaussians:
+        return self.checkpoint().gaussians
+
     def checkpoint(self) -> Checkpoint:
         return _checkpoint(self.frames)
 

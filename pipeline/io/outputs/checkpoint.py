@@ -52,6 +52,7 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
         "frames_done": checkpoint.frames_done,
         "frames_mapped": mapping.frames_seen,
         "keyframe_indices": [k.index for k in mapping.keyframes],
+        "keyframe_positions": [k.position for k in mapping.keyframes],
         "scene_radius": mapping.scene_radius,
         "loss_history": tracking.loss_history,
         "lost_frames": tracking.lost_frames,
@@ -84,11 +85,17 @@ def read_checkpoint(path: Path) -> tuple[Checkpoint, dict[str, Any]]:
 
 
 def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Checkpoint:
+    indices = header["keyframe_indices"]
+    positions = header.get("keyframe_positions", [-1] * len(indices))  # absent: written before they were kept
     keyframes = [
         Keyframe(
-            index, tensors[f"keyframes.{i}.color_u8"], tensors[f"keyframes.{i}.depth"], tensors[f"keyframes.{i}.c2w"]
+            index,
+            tensors[f"keyframes.{i}.color_u8"],
+            tensors[f"keyframes.{i}.depth"],
+            tensors[f"keyframes.{i}.c2w"],
+            int(position),
         )
-        for i, index in enumerate(header["keyframe_indices"])
+        for i, (index, position) in enumerate(zip(indices, positions, strict=True))
     ]
     tracking = FrontendState(
         poses=tensors["poses"],

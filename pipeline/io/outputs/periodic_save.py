@@ -50,7 +50,8 @@ class PeriodicSave:
         self.stamps.append((result.timestamp, reference))
         if self.error and self.stop_on_failure:
             raise OutputError(self.error)
-        if time.monotonic() - self._last >= self.every_s and (self._pending is None or self._pending.done()):
+        due = time.monotonic() - self._last >= self.every_s and slam.gaussians is not None  # a map to save
+        if due and (self._pending is None or self._pending.done()):
             self._last = time.monotonic()
             self._pending = self._writer.submit(self._save, slam.checkpoint(), list(self.stamps))
 

@@ -1,0 +1,218 @@
+"""The tracking process's handle on the mapping process: starts it (spawn), hands it frames,
+reads its map versions, asks for its state, and watches that it lives.
+
+A listener thread takes the mapping process's messages as they come (requests for larger map
+slots are answered at once, so mapping never waits on tracking's frame clock) and checks, every
+WATCH_S, that the process is alive and has shown a sign of life within `slam.backend_timeout_s`.
+A failure is kept and raised (MappingProcessFailed) from the next call on the tracking side.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
+
+import torch
+import torch.multiprocessing as mp
+
+from pipeline.config import Config
+from pipeline.errors import MappingProcessFailed
+from pipeline.frame import DeviceFrame
+from pipeline.slam.map_version import MapVersion
+from pipeline.slam.process import messages as m
+from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
+from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
+from pipeline.slam.process.shared_map import NEWEST_SLOT, VERSION, MapControl, MapReader
+from pipeline.slam.state import BackendState
+
+log = logging.getLogger("gsplatam")
+
+WATCH_S = 0.2  # how often the listener checks the mapping process (a death is noticed this soon)
+SHUTDOWN_S = 30.0  # a mapping process that does not end this long after Shutdown is terminated
+
+
+class MappingProcess:
+    def __init__(self, config: Config, device: torch.device, live: bool) -> None:
+        context = mp.get_context("spawn")
+        self.config = config
+        self.device = device
+        self.live = live
+        self.control = MapControl.create(context)
+        self.reader = MapReader(self.control, 1 if config.gaussians.isotropic else 3, device)
+        self.heartbeat = torch.tensor([time.monotonic()], dtype=torch.float64).share_memory_()
+        self.to_mapping = context.Queue()
+        self.from_mapping = context.Queue()
+        self.ring_books = RingBookkeeping.create(2 if live else max(1, config.slam.max_lead), context)
+        setup = MappingSetup(
+            config, str(device), self.control, self.reader.first, self.heartbeat, self.ring_books,
+            self.to_mapping, self.from_mapping, live, max(1, torch.get_num_threads() // 2),
+        )  # fmt: skip
+        self.process = context.Process(target=run_mapping_process, args=(setup,), name="gsplatam-mapping", daemon=True)
+        self.process.start()
+        self.ring: FrameRing | None = None
+        self.failure = ""  # why the mapping process is taken as failed; empty while it works
+        self.mapped: list[m.FrameMapped] = []  # one per frame handed over and taken, in order
+        self.refinement_renders = 0
+        self.refinement_s = 0.0
+        self._requests = itertools.count()
+        self._state_replies: dict[int, Future[m.StateSent]] = {}
+        self._done: queue.SimpleQueue[m.Done | None] = queue.SimpleQueue()  # None: the process failed
+        self._changed = threading.Condition()  # notified whenever the mapping process says anything
+        self._closing = threading.Event()
+        self._listener = threading.Thread(target=self._listen, name="mapping-listener", daemon=True)
+        self._listener.start()
+
+    # The tracking side's calls (one thread).
+
+    def check(self) -> None:
+        """Raise MappingProcessFailed if the mapping process died, hung or failed."""
+        if self.failure:
+            raise MappingProcessFailed(self.failure)
+
+    def newest_version(self) -> int:
+        """The number of the newest complete version (0 before the first)."""
+        fields = self.control.fields
+        with self.control.lock:
+            slot = int(fields[NEWEST_SLOT])
+            return 0 if slot < 0 else int(fields[VERSION + slot])
+
+    def hold_newest(self, at_least: int) -> MapVersion:
+        """The newest map version, waiting until one of number `at_least` or later exists."""
+        self._wait_for(lambda: self.newest_version() >= at_least)
+        version = self.reader.hold()
+        assert version is not None
+        return version
+
+    def hand_over(self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool) -> bool:
+        """Give a tracked frame (pose `c2w` [4, 4] camera-to-world, `position` among the run's
+        poses) to mapping. Offline it waits
+        for a free ring slot (a bound on tracking's lead); live it never waits. -> whether the
+        frame was handed over (live: False when mapping holds every slot)."""
+        self.check()
+        ring = self._ring_for(frame)
+        slot = ring.put(frame, c2w, 0.0 if self.live else WATCH_S)
+        while slot is None and not self.live:
+            self.check()
+            slot = ring.put(frame, c2w, WATCH_S)
+        if slot is None:
+            return False
+        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last))
+        return True
+
+    def state(self) -> tuple[BackendState | None, int]:
+        """The mapping side's state now (a host copy; None before the first frame) and the map
+        version it belongs to."""
+        request = next(self._requests)
+        reply: Future[m.StateSent] = Future()
+        self._state_replies[request] = reply
+        self.to_mapping.put(m.SendState(request))
+        self._wait_for(reply.done)
+        sent = reply.result()
+        return (None if sent.state is None else sent.state.unpacked()), sent.version
+
+    def restore(self, state: BackendState) -> None:
+        self._call(m.RestoreState(m.PackedBackendState.of(state)))
+
+    def start_afresh(self) -> None:
+        self._call(m.StartAfresh())
+
+    def finish(self, final_renders: int) -> int:
+        """Map every frame still waiting, then `final_renders` view renders of refinement over
+        every keyframe. -> the renders done."""
+        return self._call(m.Finish(final_renders)).renders
+
+    def close(self) -> None:
+        """End the mapping process (after what it was given) and the listener; safe twice."""
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        if self.process.is_alive() and not self.failure:
+            self.to_mapping.put(m.Shutdown())
+            self.process.join(SHUTDOWN_S)
+        if self.process.is_alive():
+            if not self.failure:
+                log.warning("the mapping process did not end within %.0f s: killed", SHUTDOWN_S)
+            self.process.kill()  # SIGKILL: a hung (even a stopped) process ends too
+            self.process.join()
+        self._listener.join()
+        self.reader.release()
+
+    def _ring_for(self, frame: DeviceFrame) -> FrameRing:
+        if self.ring is None:
+            self.ring = FrameRing.allocate(self.ring_books, frame.height, frame.width, self.device)
+            self.to_mapping.put(m.UseFrameRing(self.ring.slots))
+        if not self.ring.fits(frame):
+            raise ValueError(f"frame {frame.index} is {frame.width}x{frame.height}, unlike the frames before it")
+        return self.ring
+
+    def _call(self, message: Any) -> m.Done:
+        """Send a request that the mapping process answers with Done; wait for it."""
+        self.check()
+        self.to_mapping.put(message)
+        done = self._done.get()
+        if done is None:
+            self.check()
+        assert done is not None
+        return done
+
+    def _wait_for(self, ready: Callable[[], bool]) -> None:
+        """Until `ready()`, or the mapping process fails (then MappingProcessFailed)."""
+        with self._changed:
+            while not ready():
+                self.check()
+                self._changed.wait(WATCH_S)
+        self.check()
+
+    # The listener thread.
+
+    def _listen(self) -> None:
+        while True:
+            try:
+                message = self.from_mapping.get(timeout=WATCH_S)
+            except queue.Empty:
+                message = None
+            if message is not None:
+                self._dispatch(message)
+            if self._closing.is_set() and not self.process.is_alive():
+                return
+            if not self.failure and not self._closing.is_set():
+                self._watch()
+            with self._changed:
+                self._changed.notify_all()
+
+    def _dispatch(self, message: Any) -> None:
+        if isinstance(message, m.GrowMap):
+            generation = self.reader.grow(message.capacity, message.keyframe_capacity)
+            log.debug("map slots grown to %d Gaussians, %d keyframes", message.capacity, message.keyframe_capacity)
+            self.to_mapping.put(m.UseGeneration(generation))
+        elif isinstance(message, m.FrameMapped):
+            self.mapped.append(message)
+        elif isinstance(message, m.Refined):
+            self.refinement_renders += message.renders
+            self.refinement_s += message.seconds
+        elif isinstance(message, m.StateSent):
+            self._state_replies.pop(message.request).set_result(message)
+        elif isinstance(message, m.Done):
+            self._done.put(message)
+        elif isinstance(message, m.MappingFailed):
+            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}")
+            log.debug("the mapping process's traceback:\n%s", message.error)
+
+    def _watch(self) -> None:
+        if not self.process.is_alive():
+            self._fail(f"the mapping process ended unexpectedly (exit code {self.process.exitcode})")
+            return
+        silent = time.monotonic() - float(self.heartbeat[0])
+        if silent > self.config.slam.backend_timeout_s:
+            self._fail(f"the mapping process has shown no sign of life for {silent:.0f} s (slam.backend_timeout_s)")
+
+    def _fail(self, why: str) -> None:
+        if not self.failure:
+            self.failure = why
+            self._done.put(None)

@@ -1,0 +1,192 @@
+"""The mapping process: SLAM's mapping side, owning the Gaussians, their optimisation and the
+keyframe store, fed tracked frames by the tracking process.
+
+It never idles while there is work: a frame waiting is mapped first (offline each in turn;
+live the newest, the older ones passed over); while none waits, refinement passes over the
+stored keyframes improve the map, each ending as soon as a message arrives. Every mapped frame
+and every pass publishes a map version into the shared map.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from pipeline.config import Config
+from pipeline.frame import DeviceFrame
+from pipeline.render import make_renderer
+from pipeline.slam.backend import MappingBackend
+from pipeline.slam.frontend import TrackedFrame, TrackerMark
+from pipeline.slam.mapping import MapSettings
+from pipeline.slam.process import messages as m
+from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
+from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWriter
+from pipeline.slam.results import FrameResult
+from pipeline.slam.sides import mapping_settings
+
+BEAT_S = 0.2  # an idle mapping process shows a sign of life this often
+
+
+@dataclass(frozen=True)
+class MappingSetup:
+    """What the mapping process starts with (pickled once, at spawn)."""
+
+    config: Config
+    device: str
+    control: MapControl
+    generation: MapGeneration  # the first slots to publish into
+    heartbeat: torch.Tensor  # [1] float64 in shared memory: time.monotonic() of the last sign of life
+    ring_books: RingBookkeeping  # the frame ring's free slots (the slots come by message)
+    inbox: Any  # multiprocessing queue: tracking -> mapping
+    outbox: Any  # mapping -> tracking
+    live: bool
+    threads: int  # torch's CPU threads in this process
+
+
+def run_mapping_process(setup: MappingSetup) -> None:
+    """The process's target: the loop until Shutdown; a failure is reported, then raised."""
+    torch.set_num_threads(setup.threads)
+    try:
+        MappingLoop(setup).run()
+    except BaseException as exc:
+        setup.outbox.put(m.MappingFailed(f"{exc.__class__.__name__}: {exc}\n{traceback.format_exc()}"))
+        raise
+
+
+class MappingLoop:
+    def __init__(self, setup: MappingSetup) -> None:
+        self.setup = setup
+        self.config = setup.config
+        self.device = torch.device(setup.device)
+        renderer = make_renderer(self.config.render, self.config.gaussians, self.device)
+        self.settings: MapSettings = mapping_settings(self.config, renderer, self.device)
+        self.renderer = renderer
+        self.backend = MappingBackend(self.config, renderer, self.settings, self.device)
+        self.writer = MapWriter(setup.control, setup.generation, self._grow)
+        self.ring: FrameRing | None = None
+        self.waiting: list[m.MapFrame] = []
+        self.deferred: list[Any] = []  # messages that came while waiting for new slots
+        self.running = True
+
+    def run(self) -> None:
+        while self.running:
+            self._beat()
+            for message in self._receive(block=not self._has_work()):
+                self._handle(message)
+            if self.waiting:
+                self._map_waiting(everything=False)
+            elif self._can_refine():
+                self._refine()
+
+    def _beat(self) -> None:
+        self.setup.heartbeat[0] = time.monotonic()
+
+    def _has_work(self) -> bool:
+        return bool(self.waiting) or self._can_refine()
+
+    def _can_refine(self) -> bool:
+        back = self.backend
+        return self.config.mapping.refine_while_idle and bool(back.keyframes) and back.intrinsics is not None
+
+    def _receive(self, block: bool) -> list[Any]:
+        """Every message waiting (after the deferred ones); with `block`, at least one or a beat."""
+        received, self.deferred = self.deferred, []
+        try:
+            if block and not received:
+                received.append(self.setup.inbox.get(timeout=BEAT_S))
+            while True:
+                received.append(self.setup.inbox.get_nowait())
+        except queue.Empty:
+            pass
+        return received
+
+    def _handle(self, message: Any) -> None:
+        if isinstance(message, m.MapFrame):
+            self.waiting.append(message)
+        elif isinstance(message, m.UseFrameRing):
+            self.ring = FrameRing(message.slots, self.setup.ring_books)
+        elif isinstance(message, m.SendState):
+            state = m.PackedBackendState.of(self.backend.state()) if self.backend.gaussians is not None else None
+            self.setup.outbox.put(m.StateSent(message.request, state, self.writer.number))
+        elif isinstance(message, m.RestoreState):
+            saved = message.state.unpacked()
+            self.backend.restore(saved, TrackerMark(saved.frames_seen, 0, None))
+            self._publish()
+            self.setup.outbox.put(m.Done())
+        elif isinstance(message, m.StartAfresh):
+            self._map_waiting(everything=True)  # the warm-up's frames: their mapping compiles too
+            self.backend = MappingBackend(self.config, self.renderer, self.settings, self.device)
+            self.setup.outbox.put(m.Done())
+        elif isinstance(message, m.Finish):
+            self._map_waiting(everything=True)
+            views = len(self.backend.keyframes)
+            renders = self.backend.refine(message.final_renders, views=views) if message.final_renders else 0
+            if renders:
+                self._publish()
+            self.setup.outbox.put(m.Done(renders))
+        elif isinstance(message, m.Shutdown):
+            self.running = False
+        else:
+            raise TypeError(f"the mapping process got an unknown message {message!r}")
+
+    def _map_waiting(self, everything: bool) -> None:
+        """Offline, the oldest waiting frame (`everything`: all of them, in order); live, the newest,
+        the older ones passed over."""
+        if everything or not self.setup.live:
+            batch, self.waiting = (self.waiting, []) if everything else (self.waiting[:1], self.waiting[1:])
+            for frame in batch:
+                self._map(frame)
+            return
+        *older, newest = self.waiting
+        self.waiting = []
+        assert self.ring is not None
+        for frame in older:
+            self.ring.take(frame.slot)  # frees the slot
+            self.setup.outbox.put(m.FrameMapped(frame.index, False, 0, 0.0, 0.0))
+        self._map(newest)
+
+    def _map(self, handed: m.MapFrame) -> None:
+        assert self.ring is not None
+        slot = self.ring.take(handed.slot)
+        frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
+        result = FrameResult(handed.index, handed.timestamp, slot.c2w, {}, 0, 0, 0.0, 1.0)
+        tracked = TrackedFrame(frame, slot.c2w, result, TrackerMark(handed.position + 1, 0, None), None)
+        done = self.backend.map(tracked, is_last=handed.is_last)
+        self._publish()
+        seconds = done.seconds
+        self.setup.outbox.put(m.FrameMapped(handed.index, True, done.added, seconds["densify"], seconds["mapping"]))
+
+    def _refine(self) -> None:
+        started = time.perf_counter()
+        renders = self.backend.refine(self.config.mapping.iters, should_stop=self._interrupted)
+        if renders:
+            self._publish()
+            self.setup.outbox.put(m.Refined(renders, time.perf_counter() - started))
+
+    def _interrupted(self) -> bool:
+        """Asked before each refinement step: a message waits (a frame, most often)."""
+        self._beat()
+        return bool(self.deferred) or not self.setup.inbox.empty()
+
+    def _publish(self) -> None:
+        back = self.backend
+        assert back.gaussians is not None
+        self.writer.publish(back.gaussians, [k.pose for k in back.keyframes])
+
+    def _grow(self, capacity: int, keyframe_capacity: int) -> MapGeneration:
+        """Ask the tracking side for larger slots; other messages meanwhile are kept for later."""
+        self.setup.outbox.put(m.GrowMap(capacity, keyframe_capacity))
+        while True:
+            self._beat()
+            try:
+                message = self.setup.inbox.get(timeout=BEAT_S)
+            except queue.Empty:
+                continue
+            if isinstance(message, m.UseGeneration):
+                return message.generation
+            self.deferred.append(message)

@@ -1,0 +1,164 @@
+"""SplaTAM with its mapping side in a process of its own (`slam.schedule=process`).
+
+Tracking stays in the pipeline's process: each frame is tracked against the newest complete
+map version, and its result is ready at once; the frame then goes to the mapping process
+(unless tracking judged it lost), which maps it and, between frames, refines the map over the
+keyframes. Frame results therefore carry tracking's fields and the version tracked against;
+what mapping did with each frame comes back as `FrameMapped` reports (`mapping_summary`).
+
+The published state observers see (`SlamView`) is every frame tracked so far, the map version
+held for the last one and the keyframes' poses as mapping refined them.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from dataclasses import replace
+from typing import Any
+
+import torch
+
+from pipeline.config import Config
+from pipeline.frame import DeviceFrame
+from pipeline.render import Gaussians, Renderer
+from pipeline.slam.backend import scene_radius_of
+from pipeline.slam.frontend import TrackingFrontend
+from pipeline.slam.gaussian_map import copied
+from pipeline.slam.keyframes import KeyframePose
+from pipeline.slam.map_version import MapVersion
+from pipeline.slam.process.client import MappingProcess
+from pipeline.slam.results import FrameResult
+from pipeline.slam.sides import tracker_for
+from pipeline.slam.state import BackendState, Checkpoint
+
+log = logging.getLogger("gsplatam")
+
+
+class ProcessSplaTAM:
+    def __init__(self, config: Config, renderer: Renderer, device: torch.device, live: bool) -> None:
+        self.config = config
+        self.renderer = renderer
+        self.device = device
+        self._tracker = tracker_for(config, renderer, device)
+        self.frontend = TrackingFrontend(self._tracker, config.tracking, device)
+        self.mapping = MappingProcess(config, device, live)
+        self._first_version = 1  # versions from before a warm-up's reset do not count
+        self._saved: BackendState | None = None  # the last mapping state received (a checkpoint's)
+        self._scene_radius = 0.0  # metres, from the first frame (for a checkpoint without mapping's state)
+
+    @property
+    def frames_done(self) -> int:
+        """Frames tracked (each is in every checkpoint; mapping may not have reached the last)."""
+        return self.frontend.frames_done
+
+    @property
+    def held(self) -> MapVersion | None:
+        """The map version held for the last frame (None before the first was published)."""
+        return self.mapping.reader.held
+
+    @property
+    def gaussians(self) -> Gaussians | None:
+        held = self.held
+        return None if held is None else held.gaussians
+
+    @property
+    def poses(self) -> list[torch.Tensor]:
+        """[4, 4] camera-to-world per frame tracked, the keyframes' as mapping refined them."""
+        return self.frontend.poses_with(self._keyframes())
+
+    def _keyframes(self) -> tuple[KeyframePose, ...]:
+        held = self.held
+        return () if held is None else held.keyframes
+
+    def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
+        """Track `frame` against the newest map version (the first frame starts the map at the
+        identity), then hand it to the mapping process unless it is lost."""
+        self.mapping.check()
+        first = self.frontend.frames_done == 0
+        latest = None if first else self.mapping.hold_newest(self._first_version)
+        tracked = self.frontend.track(frame, latest)
+        if first:
+            self._scene_radius = scene_radius_of(frame.depth, self.config)
+        result = tracked.result
+        position = self.frontend.frames_done - 1
+        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
+        result.map_version = 0 if latest is None else latest.number
+        result.gaussians = 0 if latest is None else len(latest.gaussians)
+        result.seconds.update(densify=0.0, mapping=0.0)
+        result.seconds["total"] = result.seconds["tracking"]
+        return result
+
+    def warm_up(self, frame: DeviceFrame) -> None:
+        """Map `frame` and track it against that map (compiling both processes' kernels), then
+        start afresh on both sides. Only before the first frame."""
+        if self.frontend.frames_done:
+            raise RuntimeError("ProcessSplaTAM.warm_up runs before the first frame only")
+        for index in range(2):
+            self.step(replace(frame, index=index))
+        self.mapping.start_afresh()  # after mapping the second frame too
+        self._first_version = self.mapping.newest_version() + 1
+        self.mapping.reader.release()
+        self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
+
+    def checkpoint(self) -> Checkpoint:
+        """Every frame tracked, with mapping's state as of now (a round trip to the mapping
+        process). If that process has failed: the map version held last and the mapping state
+        of the last checkpoint (or an empty keyframe store), so that nothing tracked is lost."""
+        if not self.mapping.failure:
+            state, _ = self.mapping.state()
+            if state is not None:
+                self._saved = state
+        mapping = self._saved if not self.mapping.failure else self._mapping_after_failure()
+        if mapping is None:
+            raise RuntimeError("no map yet: nothing to checkpoint")
+        return Checkpoint(self.frontend.state(keyframes=[k.pose for k in mapping.keyframes]), mapping)
+
+    def _mapping_after_failure(self) -> BackendState | None:
+        held = self.held
+        if held is None:
+            return None
+        saved = self._saved
+        mapped = sum(report.mapped for report in self.mapping.mapped)
+        if saved is None:
+            rng, generator = random.Random(self.config.run.seed), torch.Generator().manual_seed(self.config.run.seed)
+            return BackendState(
+                copied(held.gaussians, "cpu"), [], self._scene_radius, rng.getstate(), generator.get_state(), mapped
+            )
+        return replace(saved, gaussians=copied(held.gaussians, "cpu"), frames_seen=max(saved.frames_seen, mapped))
+
+    def restore(self, saved: Checkpoint) -> None:
+        self.frontend.restore(saved.tracking)
+        self.mapping.restore(saved.mapping)
+        self._saved = saved.mapping
+        self._scene_radius = saved.mapping.scene_radius
+        self._first_version = self.mapping.newest_version()
+        self.mapping.hold_newest(self._first_version)
+
+    def finish(self, final_renders: int) -> int:
+        """Let mapping take every frame handed to it, then refine (`final_renders` view renders
+        over every keyframe); hold the final version. -> the final renders done."""
+        renders = self.mapping.finish(final_renders)
+        self.mapping.hold_newest(self.mapping.newest_version())
+        return renders
+
+    def mapping_summary(self) -> dict[str, Any]:
+        """What the mapping process did: frames mapped and passed over, their mean times, and the
+        refinement passes between frames."""
+        reports = self.mapping.mapped
+        mapped = [r for r in reports if r.mapped]
+
+        def mean_ms(values: list[float]) -> float | None:
+            return 1000 * sum(values) / len(values) if values else None
+
+        return {
+            "frames_mapped": len(mapped),
+            "frames_passed_over": len(reports) - len(mapped),
+            "densify_ms": mean_ms([r.densify_s for r in mapped[2:]]),  # as timing_summary: frames 0 and 1 left out
+            "mapping_ms": mean_ms([r.mapping_s for r in mapped[2:]]),
+            "refinement_renders": self.mapping.refinement_renders,
+            "refinement_s": self.mapping.refinement_s,
+        }
+
+    def close(self) -> None:
+        self.mapping.close()

@@ -1,0 +1,27 @@
+"""How SLAM's two sides are built from a config, wherever they run (one process or two)."""
+
+from __future__ import annotations
+
+import torch
+
+from pipeline.config import Config, switched_on
+from pipeline.render import Renderer, make_views_renderer
+from pipeline.slam.kernels import make_kernels
+from pipeline.slam.mapping import MapSettings
+from pipeline.slam.tracking import Tracker, TrackSettings, make_tracker
+
+
+def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tracker:
+    """The configured tracker, its kernels compiled when `run.compile` says so."""
+    cuda = device.type == "cuda"
+    kernels = make_kernels(switched_on(config.run.compile, cuda))
+    near, far = config.render.near, config.render.far
+    return make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
+
+
+def mapping_settings(config: Config, renderer: Renderer, device: torch.device) -> MapSettings:
+    """What mapping needs besides the map: renderers, losses, kernels."""
+    kernels = make_kernels(switched_on(config.run.compile, device.type == "cuda"))
+    views = make_views_renderer(config.render, config.gaussians, device)
+    near, far = config.render.near, config.render.far
+    return MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
