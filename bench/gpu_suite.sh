@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
-#   bash bench/gpu_suite.sh OUT_DIR parity ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
+#   bash bench/gpu_suite.sh OUT_DIR parity schedules-tiny schedules-small schedules-base process-options ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
 # The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine"),
 # and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/.
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
@@ -68,6 +68,13 @@ for part in "$@"; do
     tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     mapping-parity) python3 bench/mapping_parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    schedules-tiny) bench synthetic-tum "$tum" synthetic --presets tiny \
+                      --variants sequential,overlapped-views2,process,process-views2 --stem schedules_tiny ;;
+    schedules-small) bench synthetic-tum "$tum" synthetic --presets small --variants sequential,process --stem schedules_small ;;
+    schedules-base) bench synthetic-tum "$tum" --presets base --variants sequential --stem schedules_base ;;
+    process-options) bench synthetic-tum --presets tiny \
+                       --variants process,process-lead1,process-no-refine,process-fixed-poses,process-no-sample,process-final \
+                       --stem process_options ;;
     smoke) bench synthetic --presets tiny --set synthetic.frames=60 --variants sequential,overlapped,views2,selective-adam --stem smoke ;;
     exports) python3 -m pipeline run --preset tiny --quiet --output /tmp/exports --name tiny 2>&1 | tail -n 3
              for fmt in nerfstudio splat ply pointcloud mesh; do  # mesh needs open3d (the mesh extra) there

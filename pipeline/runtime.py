@@ -46,7 +46,7 @@ class RuntimeReport:
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     queues: dict[str, dict[str, int]] = field(default_factory=dict)
     gpu_gaps_ms: list[float] = field(default_factory=list)
-    gpu_busy_fraction: float | None = None  # frame spans on the compute stream / their wall time
+    kernel_sample: dict[str, Any] | None = None  # the GPU's kernel time over a window of frames (slam/kernel_time.py)
     profile: dict[str, Any] | None = None  # kernel-timeline summary when run under the profiler
 
     def summary(self) -> dict[str, Any]:
@@ -59,7 +59,8 @@ class RuntimeReport:
             "interrupted": self.interrupted,
             "stages": self.stages,
             "queues": self.queues,
-            "gpu_busy_fraction": self.gpu_busy_fraction,
+            "kernel_busy_fraction": None if self.kernel_sample is None else self.kernel_sample["busy_fraction"],
+            "kernel_sample": self.kernel_sample,
             "profile": self.profile,
             "gpu_gap_ms": {
                 "mean": sum(gaps) / len(gaps) if gaps else None,
@@ -103,9 +104,6 @@ def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, st
     report.stages = {s.name: s.summary() for s in stats}
     spans = graph.slam[0].spans  # the stage that takes frames from the upload: tracking, when overlapped
     report.gpu_gaps_ms = spans.gaps_ms()
-    wall_ms = spans.wall_ms()
-    if wall_ms > 0:
-        report.gpu_busy_fraction = spans.busy_ms() / wall_ms
     return report
 
 

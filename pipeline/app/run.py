@@ -20,12 +20,14 @@ from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device, synthetic_for
 from pipeline.errors import OutputError, StageFailure, UserError
+from pipeline.frame import DeviceFrame
 from pipeline.io.datasets.base import Dataset
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.source import DatasetSource
 from pipeline.io.datasets.synthetic_writer import cached_synthetic
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.metrics import absolute_trajectory_error, view_quality
+from pipeline.render import Gaussians
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
 from pipeline.stages.upload import make_uploader
@@ -75,8 +77,7 @@ def run_slam(
                         log.info("interrupted before the first frame was processed: nothing to write")
                         return RunResult(session.folder, None)
                     raise UserError("no frame was processed")
-                metrics = _finish(session, dataset, report, signalled, progress)
-                metrics["render_before_final_iters"] = before_final
+                metrics = _finish(session, dataset, report, signalled, progress, before_final)
             ate, render = metrics["ate"] or {}, metrics["render"] or {}
             summary = run_summary(metrics["frames"], metrics["gaussians"], ate.get("rmse_cm"), render.get("psnr_db"))
             session.linger(summary + f"\n\nin {session.folder.path}")
@@ -169,10 +170,16 @@ def _prepare_dataset(config: Config, device: torch.device, progress: bool) -> tu
 
 
 def _finish(
-    session: Session, dataset: Dataset, report: RuntimeReport, signalled: threading.Event, progress: bool
+    session: Session,
+    dataset: Dataset,
+    report: RuntimeReport,
+    signalled: threading.Event,
+    progress: bool,
+    before_final: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write trajectory, map and checkpoint, evaluate (unless the run was interrupted; a signal
-    cuts it short), write metrics. OutputError where a file could not be written (a full disk)."""
+    cuts it short), write metrics (with `before_final`, the render metrics before
+    `mapping.final_iters`). OutputError where a file could not be written (a full disk)."""
     session.saver.save_now(session.slam.checkpoint())
     metrics = _metrics(session, dataset)
     results = session.sink.results
@@ -185,6 +192,7 @@ def _finish(
         metrics["evaluation"] = "skipped: SLAM was interrupted (continue with --resume)"
     else:
         metrics["render"], metrics["evaluation"] = _render_metrics(session, dataset, signalled, progress)
+    metrics["render_before_final_iters"] = before_final
     metrics["interrupted"] = report.interrupted or signalled.is_set()
     metrics["write_error"] = session.saver.error or None  # a frames.csv line that could not be written
     session.folder.write_metrics(metrics)
@@ -297,4 +305,25 @@ def _render_metrics(
         "every": config.run.eval_every,
         "pixels": "valid-depth pixels only",
     }
+    if not signalled.is_set():
+        render.update(_keyframe_psnr(session, gaussians, frame.intrinsics))
     return render, done
+
+
+def _keyframe_psnr(session: Session, gaussians: Gaussians, intrinsics: torch.Tensor) -> dict[str, Any]:
+    """PSNR of the map rendered at every keyframe's pose (as mapping refined it) against the
+    keyframe's stored colour (8-bit), over its valid-depth pixels."""
+    config, device = session.config, session.device
+    keyframes = session.slam.checkpoint().keyframes
+    scores = [
+        view_quality(
+            session.slam.renderer,
+            gaussians,
+            DeviceFrame(k.index, 0.0, k.color.to(device), k.depth.to(device), intrinsics, None),
+            k.c2w.to(device),
+            config.render.near,
+            config.render.far,
+        ).psnr_db
+        for k in keyframes
+    ]
+    return {"keyframes_psnr_db": float(np.mean(scores)) if scores else None, "keyframes": len(scores)}

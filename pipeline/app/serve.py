@@ -89,9 +89,16 @@ def status_reader(session: Session, graph: Graph) -> Callable[[], dict[str, Any]
             "gpu_memory_gb": _gpu_memory_gb(session.device),
             "save_error": session.saver.error or None,
             "saved_frames": session.saver.saved_frames,
+            "kernel_busy_fraction": _kernel_busy(session),
         }
 
     return read
+
+
+def _kernel_busy(session: Session) -> float | None:
+    """The GPU's kernel busy fraction once its sampled window (frames 10-60) has closed."""
+    sample = None if session.kernels is None else session.kernels.sample
+    return None if sample is None else sample.busy_fraction
 
 
 def _seconds_since_last_frame(sink: ResultSink) -> float | None:

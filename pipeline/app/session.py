@@ -8,7 +8,7 @@ import contextlib
 import logging
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -26,6 +26,7 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
+from pipeline.slam.kernel_time import KernelSampler
 from pipeline.slam.process.schedule import ProcessSplaTAM
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
@@ -58,6 +59,7 @@ class Session:
     saver: PeriodicSave
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
+    kernels: KernelSampler | None = None  # the GPU's kernel busy fraction over a window (CUDA)
 
     def linger(self, summary: str) -> None:
         """After the run: the viewer, if any, keeps the final map up for its watchers (`summary`
@@ -75,7 +77,7 @@ class Session:
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
-        return [o for o in (self.intrinsics, self.saver, self.viewer) if o is not None]
+        return [o for o in (self.intrinsics, self.saver, self.kernels, self.viewer) if o is not None]
 
 
 def describe_run(source: str, live: bool, config: Config, **details: Any) -> dict[str, Any]:
@@ -119,7 +121,10 @@ def open_session(
     sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
     intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
-    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
+    kernels = (
+        KernelSampler(slam.sample_kernels) if switched_on(config.run.kernel_sample, device.type == "cuda") else None
+    )
+    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services, kernels)
 
 
 def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSlam:
@@ -159,13 +164,21 @@ def execute_session(
     """Run the session's graph to the end of its source or a stop; sink and saver are closed
     and the viewer shows the final state whatever happens (`Session.close` closes it). `on_graph`
     sees the graph before it runs (the status endpoint)."""
+    if profile_trace:
+        session.kernels = None  # the profiler records every kernel already (one profiler at a time)
     graph = graph_of(session)
     if on_graph is not None:
         on_graph(graph)
     try:
         if not profile_trace:
-            return execute(graph, session.config.run.loader)
-        return _profiled(graph, session)
+            report = execute(graph, session.config.run.loader)
+        else:
+            report = _profiled(graph, session)
+        if session.kernels is not None:
+            session.kernels.close(session.slam.frames_done)
+            sample = session.kernels.sample
+            report.kernel_sample = None if sample is None else asdict(sample)
+        return report
     finally:
         session.sink.close()
         session.saver.close()

@@ -179,6 +179,7 @@ class RunConfig:
     queue_size: int = 4  # frames each pipeline queue holds
     seed: int = 0  # seeds mapping's keyframe picks and pixel sampling
     save_every_s: float = 60.0  # map, trajectory and checkpoint written this often while running (and at the end)
+    kernel_sample: Switch = "auto"  # the GPU's kernel busy fraction over frames 10-60 (CUPTI; auto: on CUDA)
 
 
 PoseUse = Literal["initial_guess", "groundtruth", "ignore"]

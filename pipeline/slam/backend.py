@@ -53,6 +53,7 @@ class MappingBackend:
         self.mark: TrackerMark | None = None  # the tracking side's state as of the last frame seen
         self.intrinsics: torch.Tensor | None = None  # [3, 3] the frames' camera (one per run), once mapped
         self._cycle: list[int] = []  # keyframe indices still to visit in this round of refinement passes
+        self.on_step: Callable[[], None] | None = None  # called before every optimiser step (a sign of life)
         self.clock = StageClock(device)
 
     def state(self) -> BackendState:
@@ -141,7 +142,7 @@ class MappingBackend:
         positions = self._refinement_views(views or self.config.mapping.window)
         chosen = [self.keyframes[p] for p in positions]
         fixed = frozenset(i for i, p in enumerate(positions) if p == 0)
-        plan = WindowPlan(renders, should_stop, self.config.mapping.refine_pose_lr, fixed)
+        plan = WindowPlan(renders, should_stop, self.config.mapping.refine_pose_lr, fixed, self.on_step)
         radius = self.scene_radius
         result = optimise_window(self.gaussians, chosen, self.intrinsics, radius, self.rng, self.settings, plan)
         self.gaussians = result.gaussians
@@ -228,4 +229,5 @@ class MappingBackend:
         assert self.gaussians is not None
         if self.config.mapping.iters == 0:
             return
-        self.gaussians = map_window(self.gaussians, views, intrinsics, self.scene_radius, self.rng, self.settings)
+        radius = self.scene_radius
+        self.gaussians = map_window(self.gaussians, views, intrinsics, radius, self.rng, self.settings, self.on_step)

@@ -64,6 +64,7 @@ class WindowPlan:
     should_stop: Callable[[], bool] | None = None  # asked before each step: end the pass early (new work)
     pose_lr: float = 0.0  # > 0: each view's pose is optimised jointly, a twist per view, Adam at this step
     fixed: frozenset[int] = frozenset()  # positions in the views whose poses stay (the gauge: the first keyframe)
+    on_step: Callable[[], None] | None = None  # called before each step (a mapping process's sign of life)
 
 
 @dataclass(frozen=True)
@@ -80,12 +81,13 @@ def map_window(
     scene_radius: float,
     rng: random.Random,
     settings: MapSettings,
+    on_step: Callable[[], None] | None = None,
 ) -> Gaussians:
     """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`).
 
     -> the optimised Gaussians (detached).
     """
-    plan = WindowPlan(settings.config.iters)
+    plan = WindowPlan(settings.config.iters, on_step=on_step)
     return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan).gaussians
 
 
@@ -112,6 +114,8 @@ def optimise_window(
     poses = _ViewPoses(views, intrinsics, settings, plan)
     per_step, done = config.views_per_step, 0
     for first in range(0, plan.iters, per_step):
+        if plan.on_step is not None:
+            plan.on_step()
         if plan.should_stop is not None and plan.should_stop():
             break
         renders = range(first, min(first + per_step, plan.iters))

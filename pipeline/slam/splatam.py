@@ -67,6 +67,10 @@ class SplaTAM:
         (`mapping.final_iters`), published. -> the renders done."""
         return self.backend.refine(final_renders, views=len(self.backend.keyframes))
 
+    def sample_kernels(self, on: bool) -> float:
+        """No other process launches this SLAM's kernels (`KernelSampler`)."""
+        return 0.0
+
     def mapping_summary(self) -> dict[str, Any] | None:
         """Mapping runs on the frame clock here: frames.csv says what it did per frame."""
         return None

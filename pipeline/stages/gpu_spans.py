@@ -33,16 +33,3 @@ class GpuSpans:
             return []
         torch.cuda.synchronize()
         return [prev_end.elapsed_time(start) for (_, prev_end), (start, _) in zip(self._events, self._events[1:])]
-
-    def busy_ms(self) -> float:
-        """Sum of the spans from each frame's start event to its end event."""
-        if not self._events:
-            return 0.0
-        torch.cuda.synchronize()
-        return sum(start.elapsed_time(end) for start, end in self._events)
-
-    def wall_ms(self) -> float:
-        if not self._events:
-            return 0.0
-        torch.cuda.synchronize()
-        return self._events[0][0].elapsed_time(self._events[-1][1])

@@ -34,6 +34,7 @@ from pipeline.slam.state import BackendState
 log = logging.getLogger("gsplatam")
 
 WATCH_S = 0.2  # how often the listener checks the mapping process (a death is noticed this soon)
+STARTUP_S = 120.0  # a mapping process that has not begun its loop this long after its start has failed
 SHUTDOWN_S = 30.0  # a mapping process that does not end this long after Shutdown is terminated
 
 
@@ -45,7 +46,8 @@ class MappingProcess:
         self.live = live
         self.control = MapControl.create(context)
         self.reader = MapReader(self.control, 1 if config.gaussians.isotropic else 3, device)
-        self.heartbeat = torch.tensor([time.monotonic()], dtype=torch.float64).share_memory_()
+        self.heartbeat = torch.zeros(1, dtype=torch.float64).share_memory_()  # 0 until the process's first beat
+        self._started = time.monotonic()
         self.to_mapping = context.Queue()
         self.from_mapping = context.Queue()
         self.ring_books = RingBookkeeping.create(2 if live else max(1, config.slam.max_lead), context)
@@ -62,6 +64,7 @@ class MappingProcess:
         self.refinement_s = 0.0
         self._requests = itertools.count()
         self._state_replies: dict[int, Future[m.StateSent]] = {}
+        self._kernels: Future[m.KernelsSampled] = Future()
         self._done: queue.SimpleQueue[m.Done | None] = queue.SimpleQueue()  # None: the process failed
         self._changed = threading.Condition()  # notified whenever the mapping process says anything
         self._closing = threading.Event()
@@ -115,6 +118,17 @@ class MappingProcess:
         self._wait_for(reply.done)
         sent = reply.result()
         return (None if sent.state is None else sent.state.unpacked()), sent.version
+
+    def sample_kernels(self, on: bool) -> float:
+        """Start or stop recording the mapping process's kernels; a stop returns their busy ms."""
+        if on:
+            self.to_mapping.put(m.SampleKernels(True))
+            return 0.0
+        reply: Future[m.KernelsSampled] = Future()
+        self._kernels = reply
+        self.to_mapping.put(m.SampleKernels(False))
+        self._wait_for(reply.done)
+        return reply.result().busy_ms
 
     def restore(self, state: BackendState) -> None:
         self._call(m.RestoreState(m.PackedBackendState.of(state)))
@@ -198,6 +212,8 @@ class MappingProcess:
             self.refinement_s += message.seconds
         elif isinstance(message, m.StateSent):
             self._state_replies.pop(message.request).set_result(message)
+        elif isinstance(message, m.KernelsSampled):
+            self._kernels.set_result(message)
         elif isinstance(message, m.Done):
             self._done.put(message)
         elif isinstance(message, m.MappingFailed):
@@ -208,7 +224,12 @@ class MappingProcess:
         if not self.process.is_alive():
             self._fail(f"the mapping process ended unexpectedly (exit code {self.process.exitcode})")
             return
-        silent = time.monotonic() - float(self.heartbeat[0])
+        beat = float(self.heartbeat[0])
+        if beat == 0.0:  # still starting (importing torch, initialising CUDA)
+            if time.monotonic() - self._started > max(STARTUP_S, self.config.slam.backend_timeout_s):
+                self._fail(f"the mapping process did not start within {STARTUP_S:.0f} s")
+            return
+        silent = time.monotonic() - beat
         if silent > self.config.slam.backend_timeout_s:
             self._fail(f"the mapping process has shown no sign of life for {silent:.0f} s (slam.backend_timeout_s)")
 

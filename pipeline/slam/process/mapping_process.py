@@ -9,6 +9,7 @@ and every pass publishes a map version into the shared map.
 
 from __future__ import annotations
 
+import importlib
 import queue
 import time
 import traceback
@@ -22,6 +23,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.render import make_renderer
 from pipeline.slam.backend import MappingBackend
 from pipeline.slam.frontend import TrackedFrame, TrackerMark
+from pipeline.slam.kernel_time import KernelTimer
 from pipeline.slam.mapping import MapSettings
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
@@ -50,8 +52,9 @@ class MappingSetup:
 
 def run_mapping_process(setup: MappingSetup) -> None:
     """The process's target: the loop until Shutdown; a failure is reported, then raised."""
-    torch.set_num_threads(setup.threads)
     try:
+        torch.set_num_threads(setup.threads)
+        importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
         MappingLoop(setup).run()
     except BaseException as exc:
         setup.outbox.put(m.MappingFailed(f"{exc.__class__.__name__}: {exc}\n{traceback.format_exc()}"))
@@ -66,12 +69,18 @@ class MappingLoop:
         renderer = make_renderer(self.config.render, self.config.gaussians, self.device)
         self.settings: MapSettings = mapping_settings(self.config, renderer, self.device)
         self.renderer = renderer
-        self.backend = MappingBackend(self.config, renderer, self.settings, self.device)
+        self.backend = self._new_backend()
         self.writer = MapWriter(setup.control, setup.generation, self._grow)
         self.ring: FrameRing | None = None
         self.waiting: list[m.MapFrame] = []
         self.deferred: list[Any] = []  # messages that came while waiting for new slots
         self.running = True
+        self.kernel_timer = KernelTimer()
+
+    def _new_backend(self) -> MappingBackend:
+        backend = MappingBackend(self.config, self.renderer, self.settings, self.device)
+        backend.on_step = self._beat
+        return backend
 
     def run(self) -> None:
         while self.running:
@@ -120,7 +129,7 @@ class MappingLoop:
             self.setup.outbox.put(m.Done())
         elif isinstance(message, m.StartAfresh):
             self._map_waiting(everything=True)  # the warm-up's frames: their mapping compiles too
-            self.backend = MappingBackend(self.config, self.renderer, self.settings, self.device)
+            self.backend = self._new_backend()
             self.setup.outbox.put(m.Done())
         elif isinstance(message, m.Finish):
             self._map_waiting(everything=True)
@@ -129,6 +138,11 @@ class MappingLoop:
             if renders:
                 self._publish()
             self.setup.outbox.put(m.Done(renders))
+        elif isinstance(message, m.SampleKernels):
+            if message.on:
+                self.kernel_timer.start()
+            else:
+                self.setup.outbox.put(m.KernelsSampled(self.kernel_timer.stop()[0]))
         elif isinstance(message, m.Shutdown):
             self.running = False
         else:
@@ -170,7 +184,6 @@ class MappingLoop:
 
     def _interrupted(self) -> bool:
         """Asked before each refinement step: a message waits (a frame, most often)."""
-        self._beat()
         return bool(self.deferred) or not self.setup.inbox.empty()
 
     def _publish(self) -> None:

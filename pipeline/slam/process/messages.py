@@ -112,6 +112,13 @@ class Finish:
 
 
 @dataclass(frozen=True)
+class SampleKernels:
+    """Start (`on`) or stop recording this process's kernels (a stop is answered by KernelsSampled)."""
+
+    on: bool
+
+
+@dataclass(frozen=True)
 class Shutdown:
     """End the process once everything before it is done."""
 
@@ -147,6 +154,11 @@ class FrameMapped:
 class Refined:
     renders: int  # view renders of one refinement pass
     seconds: float
+
+
+@dataclass(frozen=True)
+class KernelsSampled:
+    busy_ms: float  # the union of the mapping process's kernel intervals over the window
 
 
 @dataclass(frozen=True)

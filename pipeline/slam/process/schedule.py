@@ -142,6 +142,10 @@ class ProcessSplaTAM:
         self.mapping.hold_newest(self.mapping.newest_version())
         return renders
 
+    def sample_kernels(self, on: bool) -> float:
+        """Kernel recording in the mapping process (`KernelSampler`)."""
+        return self.mapping.sample_kernels(on)
+
     def mapping_summary(self) -> dict[str, Any]:
         """What the mapping process did: frames mapped and passed over, their mean times, and the
         refinement passes between frames."""

@@ -1,0 +1,110 @@
+"""How busy the GPU's kernels keep it: kernel time over wall time, from CUDA's own records of
+each kernel and copy (CUPTI, through torch.profiler), over a sampled window of frames.
+
+Why a window: CUPTI's activity records cost a few microseconds per launch and memory per
+record, too much for a whole run; one window after the first frames (compilation, graph
+recording) shows the steady state. Only the device's activity is recorded (no host ops, no
+shapes, no stacks). The busy time is the union of the kernel and copy intervals, so kernels of
+two streams running at once count once. A process records only its own kernels; a mapping
+process records its own over the same window, and the two add up, since kernels of two
+processes never run at once on one GPU without MPS (the GPU time-slices their contexts).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import torch
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity, profile
+
+from pipeline.frame import DeviceFrame
+from pipeline.slam.results import FrameResult
+from pipeline.slam.view import SlamView
+
+WINDOW_START = 10  # frames done before the window opens
+WINDOW_FRAMES = 50  # frames the window spans
+
+
+def union_ms(intervals: Iterable[tuple[float, float]]) -> float:
+    """The length of the union of (start, end) intervals, in their unit."""
+    total, reach = 0.0, -float("inf")
+    for start, end in sorted(intervals):
+        if end <= reach:
+            continue
+        total += end - max(start, reach)
+        reach = end
+    return total
+
+
+class KernelTimer:
+    """Records this process's kernels and copies between `start()` and `stop()`."""
+
+    def __init__(self) -> None:
+        self._profile: profile | None = None
+        self._started = 0.0
+
+    def start(self) -> None:
+        self._profile = profile(activities=[ProfilerActivity.CUDA])
+        self._profile.start()
+        self._started = time.perf_counter()
+
+    def stop(self) -> tuple[float, float]:
+        """-> (busy ms: the union of kernel and copy intervals, wall ms of the window)."""
+        assert self._profile is not None
+        torch.cuda.synchronize()
+        wall_ms = 1000 * (time.perf_counter() - self._started)
+        self._profile.stop()
+        events = self._profile.events()
+        self._profile = None
+        device = [
+            (e.time_range.start, e.time_range.end)
+            for e in events
+            if e.device_type == DeviceType.CUDA and not e.is_user_annotation
+        ]
+        return union_ms(device) / 1000.0, wall_ms
+
+
+@dataclass(frozen=True)
+class KernelSample:
+    busy_fraction: float  # kernel and copy time over wall time, all processes of the session
+    busy_ms: float
+    window_ms: float
+    frames: tuple[int, int]  # frames done when the window opened and closed
+
+
+class KernelSampler:
+    """A SLAM-stage observer: opens the window after WINDOW_START frames, closes it
+    WINDOW_FRAMES later (or when the run ends, `close()`). `elsewhere(True)` starts the same
+    recording in the session's other processes, `elsewhere(False)` stops it and returns their
+    busy ms."""
+
+    def __init__(self, elsewhere: Callable[[bool], float]) -> None:
+        self.elsewhere = elsewhere
+        self.timer = KernelTimer()
+        self.sample: KernelSample | None = None
+        self._opened_at: int | None = None
+
+    def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
+        done = slam.frames_done
+        if self._opened_at is None and self.sample is None and done >= WINDOW_START:
+            self._opened_at = done
+            self.elsewhere(True)
+            self.timer.start()
+        elif self._opened_at is not None and done >= self._opened_at + WINDOW_FRAMES:
+            self._close(done)
+
+    def close(self, frames_done: int) -> None:
+        """The run ended: close a window still open (a shorter run's sample)."""
+        if self._opened_at is not None:
+            self._close(frames_done)
+
+    def _close(self, done: int) -> None:
+        assert self._opened_at is not None
+        busy_ms, wall_ms = self.timer.stop()
+        busy_ms += self.elsewhere(False)
+        fraction = busy_ms / wall_ms if wall_ms > 0 else float("nan")
+        self.sample = KernelSample(fraction, busy_ms, wall_ms, (self._opened_at, done))
+        self._opened_at = None
