@@ -23,7 +23,8 @@ from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
+from pipeline.io.ui.display import LiveFeed
+from pipeline.io.ui.viewer_feed import attach_viewer, release_on_stop
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.splatam import SplaTAM
@@ -53,7 +54,7 @@ class Session:
     sink: ResultSink
     intrinsics: IntrinsicsRecorder
     saver: PeriodicSave
-    viewer: ViewerFeed | None = None
+    viewer: LiveFeed | None = None  # viser, Open3D or rerun
     services: list[Service] = field(default_factory=list)
 
     def linger(self, summary: str) -> None:

@@ -23,7 +23,7 @@ from pipeline.config import Config, RenderConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, quat_to_rotmat
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.display import FrameView, MapDisplay, MapView, colorize_depth
+from pipeline.io.ui.display import FrameView, LiveFeed, MapDisplay, MapView, colorize_depth
 from pipeline.io.ui.thumbnail import as_u8, thumbnail
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
@@ -239,12 +239,16 @@ class ViewerFeed:
         self.viewer.close()
 
 
-def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> ViewerFeed | None:
+def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) -> LiveFeed | None:
     """Start the viewer of `config.viewer.kind` when `config.viewer.enabled`; -> the observer to
     give the SLAM stage."""
     if not config.viewer.enabled:
         return None
     v = config.viewer
+    if v.kind == "rerun":
+        from pipeline.io.ui.rerun_feed import attach_rerun
+
+        return attach_rerun(v, slam.device, folder.path.name)
     viewer: MapDisplay
     if v.kind == "open3d":
         from pipeline.io.ui.open3d_viewer import Open3DViewer
@@ -257,7 +261,7 @@ def attach_viewer(config: Config, slam: SplaTAM, folder: RunFolder, title: str) 
     return ViewerFeed(viewer, slam.renderer, config.render, v.max_hz, folder, v.map_every_s)
 
 
-async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:
+async def release_on_stop(feed: LiveFeed, stop: asyncio.Event) -> None:
     """A runtime service: once the run is asked to stop, a paused SLAM may go on to finish."""
     await stop.wait()
     feed.released.set()
