@@ -26,6 +26,7 @@ from pipeline.config import ViewerConfig
 from pipeline.frame import DeviceFrame
 from pipeline.io.ui.rerun_recording import RerunRecording
 from pipeline.io.ui.thumbnail import Thumbnail, as_u8, thumbnail
+from pipeline.render import Gaussians
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 
@@ -82,21 +83,26 @@ class RerunFeed:
         self._queue.put_nowait(self._take(slam, frame, due))
 
     def _take(self, slam: SplaTAM, frame: DeviceFrame | None, with_map: bool) -> Boundary:
+        """The poses since the last boundary taken and `frame`'s images, on their way to the host;
+        with `with_map`, a copy of the map on its device."""
         poses = slam.poses
         new = poses[self._taken :]
-        stacked = torch.stack(new) if new else torch.zeros(0, 4, 4)
-        images = None if frame is None else _thumbnail_on_host(thumbnail(frame))
-        points = None
-        if with_map and slam.gaussians is not None:
-            points = MapPoints(slam.gaussians.means.detach().to(torch.float32, copy=True), as_u8(slam.gaussians.colors))
-            self._map_at = time.monotonic()
-            self._map_waiting.set()
-        boundary = Boundary(self._taken, stacked.to("cpu", non_blocking=True), images, points, None)
-        if self.cuda:
-            boundary.ready = torch.cuda.Event()
+        boundary = Boundary(
+            first=self._taken,
+            poses=(torch.stack(new) if new else torch.zeros(0, 4, 4)).to("cpu", non_blocking=True),
+            images=None if frame is None else _thumbnail_on_host(thumbnail(frame)),
+            map=self._map_copy(slam.gaussians) if with_map and slam.gaussians is not None else None,
+            ready=torch.cuda.Event() if self.cuda else None,
+        )
+        if boundary.ready is not None:
             boundary.ready.record()
         self._taken = len(poses)
         return boundary
+
+    def _map_copy(self, gaussians: Gaussians) -> MapPoints:
+        self._map_at = time.monotonic()
+        self._map_waiting.set()
+        return MapPoints(gaussians.means.detach().to(torch.float32, copy=True), as_u8(gaussians.colors.detach()))
 
     def finish(self) -> None:
         """SLAM has stopped: log the poses not logged yet and the final map, due or not."""

@@ -40,7 +40,8 @@ def thumbnail(frame: DeviceFrame, max_width: int = DISPLAY_WIDTH) -> Thumbnail:
     scale = min(1.0, max_width / frame.width)
     width, height = max(1, round(frame.width * scale)), max(1, round(frame.height * scale))
     intrinsics = frame.intrinsics.clone()
-    intrinsics[:2] *= torch.tensor([[width / frame.width], [height / frame.height]], device=intrinsics.device)
+    intrinsics[0] *= width / frame.width  # Python numbers: no copy to the device (a host wait) at a frame boundary
+    intrinsics[1] *= height / frame.height
     color = F.interpolate(frame.color.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(1, 2, 0)
     depth = F.interpolate(frame.depth[None, None], size=(height, width), mode="nearest")[0, 0]
     return Thumbnail(as_u8(color), depth, intrinsics)
