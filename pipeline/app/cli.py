@@ -61,8 +61,9 @@ def _common_options() -> Parser:
 def _add_viewer_options(parser: argparse.ArgumentParser, always: bool = False) -> None:
     if not always:
         parser.add_argument(
-            "--viewer", nargs="?", const="viser", choices=["viser", "open3d"],
-            help="watch it: viser, a web page (the default), or open3d, a desktop window",
+            "--viewer", nargs="?", const="viser", choices=["viser", "open3d", "rerun"],
+            help="watch it: viser, a web page (the default), open3d, a desktop window, or rerun, rerun's viewer "
+            "(or a .rrd file: --set viewer.rerun_save=FILE)",
         )  # fmt: skip
     parser.add_argument("--viewer-port", type=int, help="viewer port (default: 8080)")
     parser.add_argument("--viewer-host", help="viewer address (default: 127.0.0.1; 0.0.0.0 exposes it)")
@@ -168,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     view = command("view", help="viewer for a saved map: a run folder or a 3DGS PLY")
     view.add_argument("path", help="run folder (map.ply, trajectory.txt) or a .ply file")
     view.add_argument("--open3d", action="store_true", help="in a desktop window (Open3D) instead of the browser")
+    view.add_argument("--rerun", action="store_true", help="in rerun's viewer, with the cameras and trajectories")
+    view.add_argument("--rerun-save", metavar="FILE", help="write what --rerun shows to this .rrd file instead")
     _add_viewer_options(view, always=True)
 
     export = command("export", help="a run folder to nerfstudio, .splat, a full PLY, a mesh or a point cloud")
@@ -399,6 +402,11 @@ def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
+    if args.rerun or args.rerun_save:
+        from pipeline.io.ui.rerun_replay import replay_saved_run
+
+        print(replay_saved_run(Path(args.path), Path(args.rerun_save) if args.rerun_save else None))
+        return 0
     from pipeline.app.view import view_saved_map
 
     if args.viewer_port is not None and not 1 <= args.viewer_port <= 65535:

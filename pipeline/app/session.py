@@ -23,7 +23,8 @@ from pipeline.io.outputs.atomic import atomic_write_text
 from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
+from pipeline.io.ui.display import LiveFeed
+from pipeline.io.ui.viewer_feed import attach_viewer, release_on_stop
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.kernel_time import KernelSampler
@@ -57,7 +58,7 @@ class Session:
     sink: ResultSink
     intrinsics: IntrinsicsRecorder
     saver: PeriodicSave
-    viewer: ViewerFeed | None = None
+    viewer: LiveFeed | None = None  # viser, Open3D or rerun
     services: list[Service] = field(default_factory=list)
     kernels: KernelSampler | None = None  # the GPU's kernel busy fraction over a window (CUDA)
 
@@ -116,7 +117,9 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    viewer = attach_viewer(config, slam.renderer, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
+    viewer = attach_viewer(
+        config, slam.renderer, device, run_folder, f"gsplatam: {source.name}"
+    )  # first: it may be missing
     saver = PeriodicSave(run_folder, save_every_s, earlier, stop_on_failure)
     sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []

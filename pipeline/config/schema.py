@@ -13,7 +13,7 @@ LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
 TrackingMethod = Literal["adam", "align"]
-ViewerKind = Literal["viser", "open3d"]
+ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
 
 
@@ -213,11 +213,12 @@ class ViewerConfig:
     """The live viewer of `--viewer`."""
 
     enabled: bool = False  # show the run in a viewer (--viewer)
-    kind: ViewerKind = "viser"  # viser: a web page; open3d: a desktop window (the mesh extra)
+    kind: ViewerKind = "viser"  # viser: a web page; open3d: a desktop window (the mesh extra); rerun: rerun's viewer
     host: str = "127.0.0.1"  # web viewer address; 0.0.0.0 exposes it to the network: deliberately
     port: int = 8080  # web viewer port
-    max_hz: float = 1.0  # frame snapshots (stats, images, camera) per second at most
+    max_hz: float = 1.0  # frame snapshots (stats, images, camera) per second at most; rerun logs every frame
     map_every_s: float = 5.0  # the whole map is sent this often at most (~32 bytes per Gaussian; viewer.md)
+    rerun_save: str = ""  # kind rerun: write the recording to this .rrd file instead of spawning rerun's viewer
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,8 @@ def _gsplatam_without_extras(*argv: str) -> subprocess.CompletedProcess[str]:
         (["serve", "--record3d", "http://127.0.0.1:9"], "live"),
         (["run", "SEQUENCE", "--viewer", "--set", "dataset.end=1", "--output", "OUT"], "viewer"),
         (["view", "MAP"], "viewer"),
+        (["run", "SEQUENCE", "--viewer", "rerun", "--set", "viewer.rerun_save=OUT/r.rrd", "--output", "OUT"], "rerun"),
+        (["view", "MAP", "--rerun"], "rerun"),
         (["bench", "--ray", "--presets", "tiny", "--out", "OUT"], "cluster"),
     ],
 )
@@ -46,7 +48,7 @@ def test_a_missing_extra_is_one_line_naming_its_pip_command(
     argv: list[str], extra: str, replica_seq: Path, tmp_path: Path
 ) -> None:
     if argv[0] == "view":
-        argv = ["view", str(_a_map(tmp_path))]
+        argv = ["view", str(_a_map(tmp_path)), *argv[2:]]
     done = _gsplatam_without_extras(
         *[a.replace("SEQUENCE", str(replica_seq)).replace("OUT", str(tmp_path)) for a in argv]
     )

@@ -1,13 +1,19 @@
 """What a viewer shows and the contract the SLAM-side feed drives: the web viewer (viser) and
-the desktop one (Open3D) both implement `MapDisplay`."""
+the desktop one (Open3D) both implement `MapDisplay`; their feed (`ViewerFeed`) and the rerun
+sink (`RerunFeed`) both implement `LiveFeed`, what a session holds of its viewer."""
 
 from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pipeline.frame import DeviceFrame
+    from pipeline.slam.results import FrameResult
+    from pipeline.slam.view import SlamView
 
 
 @dataclass
@@ -58,6 +64,26 @@ class MapDisplay(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+class LiveFeed(Protocol):
+    """A viewer of any kind as a SLAM-stage observer, with its life after SLAM."""
+
+    released: threading.Event  # set once the run is asked to stop: a viewer that paused SLAM lets it go
+
+    def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None: ...
+
+    def finish(self) -> None:
+        """SLAM has stopped: show its final state."""
+        ...
+
+    def linger(self, summary: str) -> None:
+        """After the run: keep the final state up with `summary` (markdown) while someone watches."""
+        ...
+
+    def close(self) -> None:
+        """Safe twice."""
+        ...
 
 
 def colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:

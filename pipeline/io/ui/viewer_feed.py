@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from pipeline.config import Config, RenderConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, quat_to_rotmat
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.display import FrameView, MapDisplay, MapView, colorize_depth
+from pipeline.io.ui.display import FrameView, LiveFeed, MapDisplay, MapView, colorize_depth
+from pipeline.io.ui.thumbnail import as_u8, thumbnail
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.results import FrameResult
@@ -32,7 +32,6 @@ from pipeline.slam.view import SlamView
 
 log = logging.getLogger("gsplatam")
 
-DISPLAY_WIDTH = 320  # pixels: the images in the viewer's panel (and the frustum's) are this wide at most
 RECONNECT_GRACE_S = 5.0  # after the run, the viewer closes once nobody has watched for this long
 
 
@@ -62,7 +61,7 @@ class Snapshot:
 
 
 def _to_u8(image: torch.Tensor) -> np.ndarray:
-    return (image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
+    return as_u8(image).cpu().numpy()
 
 
 class ViewerFeed:
@@ -192,25 +191,17 @@ class ViewerFeed:
         with stream, torch.no_grad():
             if snap.ready is not None:
                 torch.cuda.current_stream().wait_event(snap.ready)
-            frame, cfg = snap.frame, self.render
-            scale = min(1.0, DISPLAY_WIDTH / frame.width)  # the panel shows thumbnails: render and send them
-            width, height = max(1, round(frame.width * scale)), max(1, round(frame.height * scale))
-            intrinsics = frame.intrinsics.clone()
-            intrinsics[:2] *= torch.tensor([[width / frame.width], [height / frame.height]], device=intrinsics.device)
-            out = self.renderer(
-                snap.gaussians, Camera(invert_pose(snap.poses[-1]), intrinsics, width, height, cfg.near, cfg.far)
-            )
-            color = F.interpolate(frame.color.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(
-                1, 2, 0
-            )
-            depth = F.interpolate(frame.depth[None, None], size=(height, width), mode="nearest")[0, 0]
-            far = float(depth.max()) or 1.0
+            cfg = self.render
+            small = thumbnail(snap.frame)  # the panel shows thumbnails: render and send them
+            camera = Camera(invert_pose(snap.poses[-1]), small.intrinsics, small.width, small.height, cfg.near, cfg.far)
+            out = self.renderer(snap.gaussians, camera)
+            far = float(small.depth.max()) or 1.0
             view = FrameView(
-                index=frame.index,
+                index=snap.frame.index,
                 poses=snap.poses.double().cpu().numpy(),
-                intrinsics=intrinsics.double().cpu().numpy(),
-                color=_to_u8(color),
-                depth=colorize_depth(depth.cpu().numpy(), far),
+                intrinsics=small.intrinsics.double().cpu().numpy(),
+                color=small.color.cpu().numpy(),
+                depth=colorize_depth(small.depth.cpu().numpy(), far),
                 rendered_depth=colorize_depth(out.depth.cpu().numpy(), far),
                 silhouette=np.repeat(_to_u8(out.silhouette)[..., None], 3, axis=-1),
                 stats=self._stats(snap),
@@ -248,12 +239,18 @@ class ViewerFeed:
         self.viewer.close()
 
 
-def attach_viewer(config: Config, renderer: Renderer, folder: RunFolder, title: str) -> ViewerFeed | None:
+def attach_viewer(
+    config: Config, renderer: Renderer, device: torch.device, folder: RunFolder, title: str
+) -> LiveFeed | None:
     """Start the viewer of `config.viewer.kind` when `config.viewer.enabled`; -> the observer to
     give the SLAM stage."""
     if not config.viewer.enabled:
         return None
     v = config.viewer
+    if v.kind == "rerun":
+        from pipeline.io.ui.rerun_feed import attach_rerun
+
+        return attach_rerun(v, device, folder.path.name)
     viewer: MapDisplay
     if v.kind == "open3d":
         from pipeline.io.ui.open3d_viewer import Open3DViewer
@@ -266,7 +263,7 @@ def attach_viewer(config: Config, renderer: Renderer, folder: RunFolder, title: 
     return ViewerFeed(viewer, renderer, config.render, v.max_hz, folder, v.map_every_s)
 
 
-async def release_on_stop(feed: ViewerFeed, stop: asyncio.Event) -> None:
+async def release_on_stop(feed: LiveFeed, stop: asyncio.Event) -> None:
     """A runtime service: once the run is asked to stop, a paused SLAM may go on to finish."""
     await stop.wait()
     feed.released.set()
