@@ -68,6 +68,9 @@ for part in "$@"; do
     tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     mapping-parity) python3 bench/mapping_parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    process-smoke) python3 -m pipeline run --preset tiny --set slam.schedule=process --set synthetic.frames=40 \
+                     --quiet --output /tmp/smoke --name process 2>&1 | tail -n 25
+                   cp /tmp/smoke/process/metrics.json "$out/process_smoke.json" ;;
     schedules-tiny) bench synthetic-tum "$tum" synthetic --presets tiny \
                       --variants sequential,overlapped-views2,process,process-views2 --stem schedules_tiny ;;
     schedules-small) bench synthetic-tum "$tum" synthetic --presets small --variants sequential,process --stem schedules_small ;;
