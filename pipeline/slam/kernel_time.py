@@ -12,9 +12,14 @@ processes never run at once on one GPU without MPS (the GPU time-slices their co
 
 from __future__ import annotations
 
+import logging
+import queue
+import threading
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import torch
 from torch.autograd import DeviceType
@@ -23,6 +28,9 @@ from torch.profiler import ProfilerActivity, profile
 from pipeline.frame import DeviceFrame
 from pipeline.slam.results import FrameResult
 from pipeline.slam.view import SlamView
+
+log = logging.getLogger("gsplatam")
+T = TypeVar("T")
 
 WINDOW_START = 10  # frames done before the window opens
 WINDOW_FRAMES = 50  # frames the window spans
@@ -39,6 +47,39 @@ def union_ms(intervals: Iterable[tuple[float, float]]) -> float:
     return total
 
 
+class _ProfilerThread:
+    """Kineto, behind torch.profiler, must be started and stopped in one thread, and the same
+    thread for the whole process (another raises "External init callback must run in same
+    thread as registerClient" and can crash): every start and stop of this process runs here."""
+
+    _shared: _ProfilerThread | None = None
+    _creating = threading.Lock()
+
+    def __init__(self) -> None:
+        self._calls: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
+        threading.Thread(target=self._serve, name="kernel-profiler", daemon=True).start()
+
+    @classmethod
+    def shared(cls) -> _ProfilerThread:
+        with cls._creating:
+            if cls._shared is None:
+                cls._shared = _ProfilerThread()
+            return cls._shared
+
+    def call(self, fn: Callable[[], T]) -> T:
+        done: Future[T] = Future()
+        self._calls.put((fn, done))
+        return done.result()
+
+    def _serve(self) -> None:
+        while True:
+            fn, done = self._calls.get()
+            try:
+                done.set_result(fn())
+            except BaseException as exc:  # handed to the caller
+                done.set_exception(exc)
+
+
 class KernelTimer:
     """Records this process's kernels and copies between `start()` and `stop()`."""
 
@@ -48,7 +89,7 @@ class KernelTimer:
 
     def start(self) -> None:
         self._profile = profile(activities=[ProfilerActivity.CUDA])
-        self._profile.start()
+        _ProfilerThread.shared().call(self._profile.start)
         self._started = time.perf_counter()
 
     def stop(self) -> tuple[float, float]:
@@ -56,12 +97,11 @@ class KernelTimer:
         assert self._profile is not None
         torch.cuda.synchronize()
         wall_ms = 1000 * (time.perf_counter() - self._started)
-        self._profile.stop()
-        events = self._profile.events()
-        self._profile = None
+        recording, self._profile = self._profile, None
+        _ProfilerThread.shared().call(recording.stop)
         device = [
             (e.time_range.start, e.time_range.end)
-            for e in events
+            for e in recording.events()
             if e.device_type == DeviceType.CUDA and not e.is_user_annotation
         ]
         return union_ms(device) / 1000.0, wall_ms
@@ -85,21 +125,33 @@ class KernelSampler:
         self.elsewhere = elsewhere
         self.timer = KernelTimer()
         self.sample: KernelSample | None = None
+        self.failed = False
         self._opened_at: int | None = None
 
     def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
         done = slam.frames_done
-        if self._opened_at is None and self.sample is None and done >= WINDOW_START:
+        if self._opened_at is None and self.sample is None and not self.failed and done >= WINDOW_START:
             self._opened_at = done
-            self.elsewhere(True)
-            self.timer.start()
+            self._measured(self._open)
         elif self._opened_at is not None and done >= self._opened_at + WINDOW_FRAMES:
-            self._close(done)
+            self._measured(lambda: self._close(done))
 
     def close(self, frames_done: int) -> None:
         """The run ended: close a window still open (a shorter run's sample)."""
         if self._opened_at is not None:
-            self._close(frames_done)
+            self._measured(lambda: self._close(frames_done))
+
+    def _measured(self, step: Callable[[], None]) -> None:
+        """A measurement that fails is reported once and given up; it never stops the run."""
+        try:
+            step()
+        except RuntimeError as exc:
+            log.warning("kernel busy fraction not measured: %s", exc)
+            self.failed, self._opened_at = True, None
+
+    def _open(self) -> None:
+        self.elsewhere(True)
+        self.timer.start()
 
     def _close(self, done: int) -> None:
         assert self._opened_at is not None

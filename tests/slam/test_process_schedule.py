@@ -231,3 +231,10 @@ def test_mapping_state_travels_packed(tmp_path: Path) -> None:
         torch.equal(a.color_u8, b.color_u8) and torch.equal(a.c2w, b.c2w) for a, b in zip(back.keyframes, keyframes)
     )
     assert back.frames_seen == 6 and back.rng_state == state.rng_state
+
+
+def test_kernel_busy_time_is_the_union_of_the_intervals() -> None:
+    from pipeline.slam.kernel_time import union_ms
+
+    assert union_ms([]) == 0.0
+    assert union_ms([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0), (5.5, 5.7)]) == 4.0

@@ -139,14 +139,25 @@ class MappingLoop:
                 self._publish()
             self.setup.outbox.put(m.Done(renders))
         elif isinstance(message, m.SampleKernels):
-            if message.on:
-                self.kernel_timer.start()
-            else:
-                self.setup.outbox.put(m.KernelsSampled(self.kernel_timer.stop()[0]))
+            self._sample_kernels(message.on)
         elif isinstance(message, m.Shutdown):
             self.running = False
         else:
             raise TypeError(f"the mapping process got an unknown message {message!r}")
+
+    def _sample_kernels(self, on: bool) -> None:
+        """Start or stop recording kernels; a recording that fails gives NaN, never a failure."""
+        try:
+            if on:
+                self.kernel_timer.start()
+                return
+            busy_ms = self.kernel_timer.stop()[0]
+        except (RuntimeError, AssertionError):
+            busy_ms = float("nan")
+            if on:
+                self.kernel_timer = KernelTimer()
+                return
+        self.setup.outbox.put(m.KernelsSampled(busy_ms))
 
     def _map_waiting(self, everything: bool) -> None:
         """Offline, the oldest waiting frame (`everything`: all of them, in order); live, the newest,
