@@ -20,7 +20,7 @@ from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config, with_value
 from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
-from pipeline.io.outputs.atomic import atomic_write_text
+from pipeline.files.atomic import atomic_write_text
 
 log = logging.getLogger("gsplatam")
 

@@ -17,11 +17,11 @@ from pipeline.app.logs import configure_logging
 from pipeline.config.schema import SYNTHETIC_CPU, SYNTHETIC_GPU
 from pipeline.errors import StageFailure, UserError
 from pipeline.extras import missing_extra
-from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
+from pipeline.outputs.exports import FORMATS as EXPORT_FORMATS
 
 if TYPE_CHECKING:  # the commands import what they need when they run: --help stays fast
     from pipeline.config import Config
-    from pipeline.io.datasets.base import Dataset
+    from pipeline.sources.datasets.base import Dataset
 
 log = logging.getLogger("gsplatam")
 
@@ -242,7 +242,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     from pipeline.config import SyntheticConfig
     from pipeline.devices import resolve_device, synthetic_for
-    from pipeline.io.datasets.synthetic_writer import write_synthetic
+    from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
     device = resolve_device("auto")
     sizes = SyntheticConfig(frames=args.frames, width=args.width, height=args.height)
@@ -339,8 +339,8 @@ FAKE_PHONE_SCENE_SIZE = (256, 192, 300)
 
 def _fake_phone_dataset(args: argparse.Namespace) -> Dataset:
     from pipeline.config import DatasetConfig, SyntheticConfig
-    from pipeline.io.datasets.loader import open_dataset
-    from pipeline.io.datasets.synthetic_writer import cached_synthetic
+    from pipeline.sources.datasets.loader import open_dataset
+    from pipeline.sources.datasets.synthetic_writer import cached_synthetic
 
     path = args.dataset
     if not path:
@@ -353,7 +353,7 @@ def _fake_phone_dataset(args: argparse.Namespace) -> Dataset:
 def cmd_fake_record3d(args: argparse.Namespace) -> int:
     import asyncio
 
-    from pipeline.io.live.fake_record3d import FakePhone
+    from pipeline.sources.live.fake_record3d import FakePhone
 
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port} is not a port (0 to 65535; 0: any free one)")
@@ -384,7 +384,7 @@ def cmd_fake_record3d(args: argparse.Namespace) -> int:
 
 
 def cmd_fake_nerfcapture(args: argparse.Namespace) -> int:
-    from pipeline.io.live.fake_nerfcapture import publish_dataset
+    from pipeline.sources.live.fake_nerfcapture import publish_dataset
 
     dataset = _fake_phone_dataset(args)
     log.info(

@@ -13,13 +13,13 @@ from pipeline.config import load_config
 from pipeline.devices import resolve_device
 from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
-from pipeline.io.outputs.exports import FORMATS
-from pipeline.io.outputs.exports.full_ply import write_full_ply
-from pipeline.io.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
-from pipeline.io.outputs.exports.nerfstudio import write_nerfstudio
-from pipeline.io.outputs.exports.pointcloud import write_pointcloud
-from pipeline.io.outputs.exports.splat import write_splat
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.exports import FORMATS
+from pipeline.outputs.exports.full_ply import write_full_ply
+from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
+from pipeline.outputs.exports.nerfstudio import write_nerfstudio
+from pipeline.outputs.exports.pointcloud import write_pointcloud
+from pipeline.outputs.exports.splat import write_splat
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.state import Checkpoint

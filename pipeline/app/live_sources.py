@@ -13,10 +13,10 @@ from pipeline.source import Source
 def live_source(spec: str, config: Config) -> Source:
     """`record3d:URL` or `nerfcapture:` (DDS domain `live.dds_domain`), `nerfcapture:DOMAIN` -> the live source."""
     if spec.startswith("nerfcapture:"):
-        from pipeline.io.live.nerfcapture import NeRFCaptureSource
+        from pipeline.sources.live.nerfcapture import NeRFCaptureSource
 
         return NeRFCaptureSource(config.live.device_pose, nerfcapture_domain(spec, config))
-    from pipeline.io.live.record3d import Record3DSource
+    from pipeline.sources.live.record3d import Record3DSource
 
     url = spec.removeprefix("record3d:")
     if not url:

@@ -29,7 +29,7 @@ from pipeline.app.serve import serve
 from pipeline.config import Config, with_value
 from pipeline.devices import placement
 from pipeline.errors import UserError
-from pipeline.io.ui.status_http import serve_status
+from pipeline.ui.status_http import serve_status
 
 log = logging.getLogger("gsplatam")
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.slam.state import Checkpoint
 
 # run_info keys a resume must match, and how a mismatch reads

@@ -20,14 +20,14 @@ from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device, synthetic_for
 from pipeline.errors import OutputError, StageFailure, UserError
-from pipeline.io.datasets.base import Dataset
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.datasets.synthetic_writer import cached_synthetic
-from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.metrics import absolute_trajectory_error, view_quality
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
+from pipeline.sources.datasets.base import Dataset
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
+from pipeline.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.stages.upload import make_uploader
 
 log = logging.getLogger("gsplatam")

@@ -17,10 +17,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.io.folders import make_folder
-from pipeline.io.outputs.atomic import atomic_write_text
-from pipeline.io.outputs.run_folder import RUN_FILES, RunFolder
-from pipeline.io.outputs.run_lock import RunLock
+from pipeline.files.atomic import atomic_write_text
+from pipeline.files.folders import make_folder
+from pipeline.outputs.run_folder import RUN_FILES, RunFolder
+from pipeline.outputs.run_lock import RunLock
 
 log = logging.getLogger("gsplatam")
 

@@ -27,13 +27,13 @@ from pipeline.app.session import Session, complete_config, describe_run, execute
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.devices import describe, resolve_device
-from pipeline.io.live.recording import RecordingSource
-from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.status_http import serve_status
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.runtime import Graph, RuntimeReport
 from pipeline.slam.results import FrameResult
 from pipeline.source import Source
+from pipeline.sources.live.recording import RecordingSource
 from pipeline.stages.sinks import ResultSink, ate_so_far_cm, recent_fps
+from pipeline.ui.status_http import serve_status
 
 log = logging.getLogger("gsplatam")
 

@@ -19,11 +19,10 @@ from torch.profiler import ProfilerActivity, profile
 from pipeline.app.profiling import all_threads_config, summarise
 from pipeline.config import Config, switched_on, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
-from pipeline.io.outputs.atomic import atomic_write_text
-from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
-from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
-from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
+from pipeline.files.atomic import atomic_write_text
+from pipeline.outputs.intrinsics import IntrinsicsRecorder
+from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.splatam import SplaTAM
@@ -33,6 +32,7 @@ from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
 from pipeline.stages.upload import make_uploader
 from pipeline.stages.worker import ThreadedStage
+from pipeline.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
 

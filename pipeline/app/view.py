@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.outputs.ply import read_ply
-from pipeline.io.trajectory import read_tum_trajectory
-from pipeline.io.ui.display import follow_pose
-from pipeline.io.ui.viewer_feed import map_view
+from pipeline.files.trajectory import read_tum_trajectory
+from pipeline.outputs.ply import read_ply
+from pipeline.ui.display import follow_pose
+from pipeline.ui.viewer_feed import map_view
 
 OVERVIEW_BACK_M = 1.5  # a saved map is first seen from this far behind the first camera
 OVERVIEW_UP_M = 0.5
@@ -28,7 +28,7 @@ def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
     start = follow_pose(poses[0], OVERVIEW_BACK_M, OVERVIEW_UP_M) if len(poses) else None
     title = f"gsplatam: {ply}"
     if open3d:
-        from pipeline.io.ui.open3d_viewer import Open3DViewer
+        from pipeline.ui.open3d_viewer import Open3DViewer
 
         window = Open3DViewer(title, live=False)
         window.show_map(map_view(gaussians))
@@ -43,7 +43,7 @@ def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
         finally:
             window.close()
         return
-    from pipeline.io.ui.viewer import Viewer
+    from pipeline.ui.viewer import Viewer
 
     viewer = Viewer(host, port, title, live=False)
     viewer.show_map(map_view(gaussians))

@@ -19,8 +19,8 @@ from live_helpers import free_port, read_status, wait_for
 from pipeline.app.bench import cells_of, report_of, run_cell
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.live.fake_record3d import FakePhone
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.live.fake_record3d import FakePhone
 
 ray = pytest.importorskip("ray")
 

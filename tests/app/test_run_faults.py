@@ -22,12 +22,12 @@ from live_helpers import wait_for
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
-from pipeline.io.datasets.synthetic_writer import write_synthetic
-from pipeline.io.outputs.checkpoint import write_checkpoint
-from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.trajectory import read_tum_trajectory
+from pipeline.files.trajectory import read_tum_trajectory
+from pipeline.outputs.checkpoint import write_checkpoint
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
+from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 QUICK = [
     "--preset",
@@ -112,7 +112,7 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
     replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
 ) -> None:
     import pipeline.app.run as run_module
-    from pipeline.io.outputs.periodic_save import PeriodicSave
+    from pipeline.outputs.periodic_save import PeriodicSave
 
     def signal_first(target: Any, name: str, sig: int) -> None:
         original = getattr(target, name)

@@ -13,7 +13,7 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.app.run_folders import LATEST, new_run_folder
 from pipeline.errors import UserError
-from pipeline.io.outputs.run_lock import RunFolderBusy, RunLock
+from pipeline.outputs.run_lock import RunFolderBusy, RunLock
 
 
 def test_runs_without_a_name_get_fresh_folders_and_latest_points_at_the_newest(tmp_path: Path) -> None:
@@ -71,7 +71,7 @@ def test_the_cli_refuses_to_run_into_an_earlier_run(replica_seq: Path, tmp_path:
 def _hold_lock(folder: Path) -> subprocess.Popen[str]:
     """Another process holding `folder`'s lock until its stdin closes."""
     script = (
-        "import sys; from pathlib import Path; from pipeline.io.outputs.run_lock import RunLock\n"
+        "import sys; from pathlib import Path; from pipeline.outputs.run_lock import RunLock\n"
         f"with RunLock(Path({str(folder)!r})):\n    print('locked', flush=True); sys.stdin.read()\n"
     )
     holder = subprocess.Popen(

@@ -16,9 +16,9 @@ from live_helpers import free_port
 from pipeline.app import serve as serve_module
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import OutputError
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.run_folder import RunFolder
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
 
 
 @pytest.mark.slow

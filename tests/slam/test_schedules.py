@@ -19,16 +19,16 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.app.run import run_slam
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults, with_value
+from pipeline.files.trajectory import read_tum_trajectory
 from pipeline.frame import DeviceFrame
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.outputs.checkpoint import read_checkpoint
-from pipeline.io.trajectory import read_tum_trajectory
 from pipeline.metrics import view_quality
+from pipeline.outputs.checkpoint import read_checkpoint
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import overlapped_stages, sequential_stages
 from pipeline.stages.upload import HostUploader, UploadedFrame, host_frame_tensors
