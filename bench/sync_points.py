@@ -66,7 +66,7 @@ def main() -> None:
         metrics = run_slam(config, progress=False).metrics
     finally:
         torch.cuda.set_sync_debug_mode("default")
-    frames = metrics["frames"] if metrics else args.frames
+    frames = metrics.frames if metrics else args.frames
     rows = [{"where": k, "count": v, "per_frame": v / frames} for k, v in counts.most_common()]
     report = {
         "device": torch.cuda.get_device_name(),

@@ -21,6 +21,7 @@ from pipeline.config import Config, load_config, with_value
 from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
 from pipeline.files.atomic import atomic_write_text
+from pipeline.outputs.run_metrics import RunMetrics
 
 log = logging.getLogger("gsplatam")
 
@@ -114,34 +115,34 @@ def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
     }
 
 
-def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
-    t, runtime = metrics["time"], metrics["runtime"]
-    ate, render = metrics.get("ate") or {}, metrics.get("render") or {}
+def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
+    t, runtime, ate, render = metrics.time, metrics.runtime, metrics.ate, metrics.render
+    assert t is not None, "a finished run is timed"
     return {
-        "sequence": metrics["dataset"],
+        "sequence": metrics.source,
         "preset": cell.preset,
         "variant": cell.variant,
         "repeat": cell.repeat,
-        "frames": metrics["frames"],
-        "tracking_ms": 1000 * t["tracking_s"],
-        "densify_ms": 1000 * t["densify_s"],
-        "mapping_ms": 1000 * t["mapping_s"],
-        "total_ms": 1000 * t["total_s"],
-        "fps_wall": t["fps_wall"],
-        "fps_steady": t["fps_steady"],
+        "frames": metrics.frames,
+        "tracking_ms": 1000 * t.tracking_s,
+        "densify_ms": 1000 * t.densify_s,
+        "mapping_ms": 1000 * t.mapping_s,
+        "total_ms": 1000 * t.total_s,
+        "fps_wall": t.fps_wall,
+        "fps_steady": t.fps_steady,
         "kernel_busy": (runtime.get("profile") or {}).get("kernel_busy_fraction"),
         "gpu_busy": runtime.get("gpu_busy_fraction"),
         "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
-        "gaussians": metrics["gaussians"],
-        "peak_gpu_gb": metrics.get("peak_gpu_memory_gb"),
-        "ate_rmse_cm": ate.get("rmse_cm"),
-        "ate_mean_cm": ate.get("mean_cm"),
-        "psnr_db": render.get("psnr_db"),
-        "ssim": render.get("ssim"),
-        "depth_l1_cm": render.get("depth_l1_cm"),
-        "lost_frames": metrics["lost_frames"],
-        "unmapped_frames": metrics.get("unmapped_frames"),
-        "warmup_frames_excluded": t["warmup_frames_excluded"],
+        "gaussians": metrics.gaussians,
+        "peak_gpu_gb": metrics.peak_gpu_memory_gb,
+        "ate_rmse_cm": ate.rmse_cm if ate else None,
+        "ate_mean_cm": ate.mean_cm if ate else None,
+        "psnr_db": render.psnr_db if render else None,
+        "ssim": render.ssim if render else None,
+        "depth_l1_cm": render.depth_l1_cm if render else None,
+        "lost_frames": metrics.lost_frames,
+        "unmapped_frames": metrics.unmapped_frames,
+        "warmup_frames_excluded": t.warmup_frames_excluded,
         "error": None,
     }
 

@@ -218,6 +218,7 @@ def _config_from(args: argparse.Namespace) -> Config:
 def cmd_run(args: argparse.Namespace) -> int:
     from pipeline.app.report import files_and_next_steps, format_table
     from pipeline.app.run import run_slam
+    from pipeline.outputs.run_folder import RunFolder
 
     config = _config_from(args)
     if args.dataset and args.dataset.startswith(LIVE_SCHEMES):
@@ -228,12 +229,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
     if args.resume and args.overwrite:
         raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
-    resume = Path(args.resume) if args.resume else None
+    resume = RunFolder(Path(args.resume)) if args.resume else None
     result = run_slam(config, resume, profile_trace=args.profile, progress=not args.quiet, overwrite=args.overwrite)
     if result.metrics is None:
         return 0
     print(format_table(result.metrics))
-    print(files_and_next_steps(result.folder.path))
+    print(files_and_next_steps(result.folder))
     return 0
 
 
@@ -314,8 +315,8 @@ def _serve_live(spec: str, config: Config, progress: bool, overwrite: bool) -> i
     log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
     result = serve(config, source, progress, overwrite)
     if result.metrics is not None:
-        print(f"{result.metrics['frames']} frames, {result.metrics['gaussians']:,} Gaussians")
-        print(files_and_next_steps(result.folder.path))
+        print(f"{result.metrics.frames} frames, {result.metrics.gaussians:,} Gaussians")
+        print(files_and_next_steps(result.folder))
     return 0
 
 

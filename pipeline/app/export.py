@@ -9,11 +9,9 @@ from pathlib import Path
 
 import torch
 
-from pipeline.config import load_config
 from pipeline.devices import resolve_device
 from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
-from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.exports.full_ply import write_full_ply
 from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
 from pipeline.outputs.exports.nerfstudio import write_nerfstudio
@@ -37,13 +35,13 @@ class Exported:
 def export_run(
     run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: str = "auto"
 ) -> Exported:
-    """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: FORMATS[fmt]
-    inside the run folder)."""
+    """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: where the
+    run folder keeps that export)."""
     if voxel_m <= 0:
         raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
     folder = RunFolder.existing(run_dir)
     checkpoint, _ = folder.read_checkpoint()
-    target = output or folder.path / FORMATS[fmt]
+    target = output or folder.export(fmt)
     target.parent.mkdir(parents=True, exist_ok=True)
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
@@ -53,7 +51,7 @@ def export_run(
         write_splat(target, gaussians)
         return Exported(target, f"{len(gaussians):,} Gaussians, 32 bytes each")
     if fmt == "ply":
-        write_full_ply(target, gaussians, load_config(config_file=folder.config).gaussians.kind)
+        write_full_ply(target, gaussians, folder.read_config().gaussians.kind)
         return Exported(target, f"{len(gaussians):,} Gaussians with normals and f_rest_* (zeros)")
     if fmt == "pointcloud":
         write_pointcloud(target, gaussians)
@@ -71,7 +69,7 @@ def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str)
     """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
     asks for the next when it has integrated the last); depth kept where the map covers the
     pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
-    config = load_config(config_file=folder.config)
+    config = folder.read_config()
     device = resolve_device(device_name)
     renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
     camera = folder.read_intrinsics()

@@ -59,11 +59,11 @@ class LiveSession:
             config = with_value(config, "run.name", f"{config.run.name}_restart{attempt}")
         self.folder = str(Path(config.run.output) / config.run.name)
         result = serve(config, live_source(self.spec, config), progress=False, control=self.control)
-        metrics = result.metrics or {}
+        metrics = result.metrics
         return {
             "folder": str(result.folder.path),
-            "frames": metrics.get("frames", 0),
-            "gaussians": metrics.get("gaussians", 0),
+            "frames": metrics.frames if metrics else 0,
+            "gaussians": metrics.gaussians if metrics else 0,
         }
 
     def status(self) -> dict[str, Any]:

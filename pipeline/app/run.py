@@ -6,22 +6,23 @@ import logging
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.app.report import run_summary, timing_summary, versions
+from pipeline.app.report import run_summary
 from pipeline.app.resume import read_resumable
-from pipeline.app.run_folders import check_output, existing_run_folder, new_run_folder
-from pipeline.app.session import Session, complete_config, describe_run, execute_session, open_session
+from pipeline.app.session import Session, complete_config, execute_session, open_session
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.devices import describe, resolve_device, synthetic_for
+from pipeline.devices import resolve_device, synthetic_for
 from pipeline.errors import OutputError, StageFailure, UserError
-from pipeline.metrics import absolute_trajectory_error, view_quality
+from pipeline.metrics import view_quality
+from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
+from pipeline.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StopRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
 from pipeline.sources.datasets.base import Dataset
@@ -36,12 +37,12 @@ log = logging.getLogger("gsplatam")
 @dataclass
 class RunResult:
     folder: RunFolder
-    metrics: dict[str, Any] | None  # None when interrupted before the first frame
+    metrics: RunMetrics | None  # None when interrupted before the first frame
 
 
 def run_slam(
     config: Config,
-    resume: Path | None = None,
+    resume: RunFolder | None = None,
     profile_trace: bool = False,
     progress: bool = True,
     overwrite: bool = False,
@@ -58,14 +59,14 @@ def run_slam(
     if resume is None:
         check_output(Path(config.run.output))  # before a generated room is cached there
     dataset, config = _prepare_dataset(config, device, progress)
-    run_info = describe_run(dataset.name, False, config, **_dataset_details(dataset, config))
+    run = RunDescription.of_dataset(dataset.name, dataset.format, dataset.frame_size, config)
     if resume is not None:
-        claimed = existing_run_folder(resume)
+        claimed = resumed_run_folder(resume)
     else:
         claimed = new_run_folder(Path(config.run.output), _default_name(dataset, config), config.run.name, overwrite)
     with claimed as folder:
-        checkpoint = read_resumable(folder, run_info, len(dataset)) if resume is not None else None
-        session = _open(config, dataset, folder, run_info, checkpoint, progress)
+        checkpoint = read_resumable(folder, run, len(dataset)) if resume is not None else None
+        session = _open(config, dataset, folder, run, checkpoint, progress)
         try:
             with signals_noted() as signalled:
                 report = _execute(session, dataset, profile_trace)
@@ -75,9 +76,7 @@ def run_slam(
                         return RunResult(session.folder, None)
                     raise UserError("no frame was processed")
                 metrics = _finish(session, dataset, report, signalled, progress)
-            ate, render = metrics["ate"] or {}, metrics["render"] or {}
-            summary = run_summary(metrics["frames"], metrics["gaussians"], ate.get("rmse_cm"), render.get("psnr_db"))
-            session.linger(summary + f"\n\nin {session.folder.path}")
+            session.linger(run_summary(metrics) + f"\n\nin {session.folder.path}")
             return RunResult(session.folder, metrics)
         finally:
             session.close()
@@ -86,21 +85,21 @@ def run_slam(
 def _open(
     config: Config,
     dataset: Dataset,
-    folder: Path,
-    run_info: dict[str, Any],
+    folder: RunFolder,
+    run: RunDescription,
     checkpoint: Checkpoint | None,
     progress: bool,
 ) -> Session:
     """The session over `dataset` into `folder`, from `checkpoint` when resuming (frames.csv
     kept to its frames); a write failure stops the run."""
     done = checkpoint.frames_done if checkpoint else 0
-    RunFolder(folder).keep_frames(done)
+    folder.keep_frames(done)
     session = open_session(
         config,
         DatasetSource(dataset, done),
         folder,
         progress=progress,
-        run_info=run_info,
+        run=run,
         save_every_s=config.run.save_every_s,
         stop_on_failure=True,
         resume=checkpoint,
@@ -125,17 +124,6 @@ def _default_name(dataset: Dataset, config: Config) -> str:
     return f"{dataset.name}_{config.preset}"
 
 
-def _dataset_details(dataset: Dataset, config: Config) -> dict[str, Any]:
-    """What of the dataset a checkpoint must match to be continued (see app/resume.py)."""
-    width, height = dataset.frame_size
-    return {
-        "format": dataset.format,
-        "size": [width, height],
-        "start": config.dataset.start,
-        "stride": config.dataset.stride,
-    }
-
-
 def _prepare_dataset(config: Config, device: torch.device, progress: bool) -> tuple[Dataset, Config]:
     """Open the configured dataset (generating the embedded synthetic scene when none is given)
     -> (the dataset, the config completed for it)."""
@@ -151,60 +139,43 @@ def _prepare_dataset(config: Config, device: torch.device, progress: bool) -> tu
 
 def _finish(
     session: Session, dataset: Dataset, report: RuntimeReport, signalled: threading.Event, progress: bool
-) -> dict[str, Any]:
+) -> RunMetrics:
     """Write trajectory, map and checkpoint, evaluate (unless the run was interrupted; a signal
     cuts it short), write metrics. OutputError where a file could not be written (a full disk)."""
     session.saver.save_now(session.slam.checkpoint())
-    metrics = _metrics(session, dataset)
-    results = session.sink.results
-    earlier = session.folder.read_metrics() if not results else None  # a resume that only evaluates
-    metrics.update(
-        runtime=earlier.get("runtime") if earlier else report.summary(),
-        time=earlier.get("time") if earlier else timing_summary(results, report, session.sink.arrivals),
-    )
+    metrics = session.metrics(report, _ate(session, dataset))
+    earlier = session.folder.read_metrics() if not session.log.results else None  # a resume that only evaluates
+    if earlier is not None:
+        metrics = replace(metrics, runtime=earlier.runtime, time=earlier.time)
     if report.interrupted:
-        metrics["evaluation"] = "skipped: SLAM was interrupted (continue with --resume)"
+        render, evaluation = None, "skipped: SLAM was interrupted (continue with --resume)"
     else:
-        metrics["render"], metrics["evaluation"] = _render_metrics(session, dataset, signalled, progress)
-    metrics["interrupted"] = report.interrupted or signalled.is_set()
-    metrics["write_error"] = session.saver.error or None  # a frames.csv line that could not be written
+        render, evaluation = _render_metrics(session, dataset, signalled, progress)
+    metrics = replace(
+        metrics,
+        render=render,
+        evaluation=evaluation,
+        interrupted=report.interrupted or signalled.is_set(),
+        write_error=session.saver.error or None,  # a frames.csv line that could not be written
+    )
     session.folder.write_metrics(metrics)
     if session.saver.error:
         raise OutputError(f"{session.saver.error}; the other outputs are written")
     return metrics
 
 
-def _metrics(session: Session, dataset: Dataset) -> dict[str, Any]:
-    """What every metrics.json holds: frames, map size, lost frames, device and the ATE."""
-    config, slam, sink, device = session.config, session.slam, session.sink, session.device
-    poses = torch.stack(slam.poses).double().cpu().numpy()
+def _ate(session: Session, dataset: Dataset) -> AteRecord | None:
+    """The ATE of every frame's pose against the dataset's, where it has one for every frame."""
+    poses = torch.stack(session.slam.poses).double().cpu().numpy()
     refs = dataset.refs[: len(poses)]
     known = [r.c2w_gt for r in refs if r.c2w_gt is not None]
-    metrics: dict[str, Any] = {
-        "dataset": dataset.name,
-        "preset": config.preset,
-        "frames": len(poses),
-        "frames_this_run": len(sink.results),
-        "gaussians": len(slam.gaussians) if slam.gaussians is not None else 0,
-        "lost_frames": sink.lost_frames,  # the sink's counts, as serve's metrics take them
-        "weak_frames": sink.weak_frames,
-        "relocalised_frames": sink.relocalised_frames,
-        "unmapped_frames": sink.unmapped_frames,
-        "schedule": config.slam.schedule,
-        "device": describe(device, config),
-        "versions": versions(),
-        "stopped": None,
-        "ate": None,
-        "render": None,
-    }
-    if device.type == "cuda":
-        metrics["peak_gpu_memory_gb"] = torch.cuda.max_memory_allocated(device) / 1e9
-    if len(known) == len(refs) and len(refs) >= 2:
-        try:
-            metrics["ate"] = _ate(poses, np.stack(known))
-        except (ValueError, np.linalg.LinAlgError) as exc:  # never lose metrics.json over it
-            log.warning("ATE not computed: %s", exc)
-    return metrics
+    if len(known) != len(refs) or len(refs) < 2:
+        return None
+    try:
+        return AteRecord.between(poses, np.stack(known))
+    except (ValueError, np.linalg.LinAlgError) as exc:  # never lose metrics.json over it
+        log.warning("ATE not computed: %s", exc)
+        return None
 
 
 def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailure) -> None:
@@ -217,10 +188,9 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
         saver.save_now(slam.checkpoint())
     except OutputError as exc:
         log.error("%s", exc)
-    metrics = _metrics(session, dataset)
-    where = {"stage": failure.stage, "frame": failure.frame, "reason": str(failure.cause)}
-    metrics["stopped"] = {**where, "frames_saved": saver.saved_frames}
-    metrics["evaluation"] = "skipped: the run stopped on an error"
+    stopped = StopRecord(failure.stage, failure.frame, str(failure.cause), saver.saved_frames)
+    metrics = session.metrics(None, _ate(session, dataset))
+    metrics = replace(metrics, stopped=stopped, evaluation="skipped: the run stopped on an error")
     try:
         session.folder.write_metrics(metrics)
     except OutputError as exc:
@@ -235,21 +205,9 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
     )
 
 
-def _ate(estimated: np.ndarray, reference: np.ndarray) -> dict[str, Any]:
-    ate = absolute_trajectory_error(estimated, reference)
-    return {
-        "rmse_cm": 100 * ate.rmse_m,
-        "mean_cm": 100 * ate.mean_m,
-        "median_cm": 100 * ate.median_m,
-        "max_cm": 100 * ate.max_m,
-        "frames": ate.frames,
-        "alignment": "rigid (rotation + translation, no scale), least squares over camera centres",
-    }
-
-
 def _render_metrics(
     session: Session, dataset: Dataset, signalled: threading.Event, progress: bool
-) -> tuple[dict[str, Any] | None, str]:
+) -> tuple[RenderRecord | None, str]:
     """PSNR, SSIM and depth L1 of the final map rendered at the estimated poses, every Nth frame;
     -> (their means, or None when no frame was evaluated; how complete the evaluation is). A
     signal (`signalled`) cuts it short after the frame in hand."""
@@ -269,12 +227,11 @@ def _render_metrics(
     )
     if not scores:
         return None, done
-    render = {
-        "psnr_db": float(np.mean([s.psnr_db for s in scores])),
-        "ssim": float(np.mean([s.ssim for s in scores])),
-        "depth_l1_cm": float(np.mean([s.depth_l1_cm for s in scores])),
-        "frames_evaluated": len(scores),
-        "every": config.run.eval_every,
-        "pixels": "valid-depth pixels only",
-    }
+    render = RenderRecord(
+        psnr_db=float(np.mean([s.psnr_db for s in scores])),
+        ssim=float(np.mean([s.ssim for s in scores])),
+        depth_l1_cm=float(np.mean([s.depth_l1_cm for s in scores])),
+        frames_evaluated=len(scores),
+        every=config.run.eval_every,
+    )
     return render, done

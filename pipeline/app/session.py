@@ -4,34 +4,37 @@ profiler when asked)."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
 from pipeline.app.profiling import all_threads_config, summarise
+from pipeline.app.report import timing_summary, versions
 from pipeline.config import Config, switched_on, with_dataset_defaults
 from pipeline.devices import describe, resolve_device
-from pipeline.files.atomic import atomic_write_text
+from pipeline.outputs.frame_row import FrameRow
 from pipeline.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
+from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
 from pipeline.render import make_renderer, resolve_backend
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
+from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
 from pipeline.source import Source
-from pipeline.stages.sinks import ResultSink
+from pipeline.stages.frame_log import FrameLog
+from pipeline.stages.sinks import ResultConsumer, ResultSink
 from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
 from pipeline.stages.upload import make_uploader
 from pipeline.stages.worker import ThreadedStage
+from pipeline.ui.progress import ProgressBar
 from pipeline.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
@@ -52,10 +55,16 @@ class Session:
     slam: SplaTAM
     source: Source
     sink: ResultSink
+    bar: ProgressBar
     intrinsics: IntrinsicsRecorder
     saver: PeriodicSave
     viewer: ViewerFeed | None = None
     services: list[Service] = field(default_factory=list)
+
+    @property
+    def log(self) -> FrameLog:
+        """The results so far, their arrival times and counts."""
+        return self.sink.log
 
     def linger(self, summary: str) -> None:
         """After the run: the viewer, if any, keeps the final map up for its watchers (`summary`
@@ -68,26 +77,46 @@ class Session:
         if self.viewer is not None:
             self.viewer.close()
 
+    def metrics(self, report: RuntimeReport | None, ate: AteRecord | None) -> RunMetrics:
+        """What every metrics.json holds, a dataset's or a live session's: sizes, counts, device,
+        the source's counters, frame ages, timing (`report`: None when the run failed) and the ATE."""
+        config, slam, frames, device = self.config, self.slam, self.log, self.device
+        peak = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
+        return RunMetrics(
+            source=self.source.name,
+            live=self.source.live,
+            preset=config.preset,
+            schedule=config.slam.schedule,
+            frames=slam.frames_done,
+            frames_this_run=len(frames.results),
+            gaussians=len(slam.gaussians) if slam.gaussians is not None else 0,
+            lost_frames=frames.lost_frames,
+            weak_frames=frames.weak_frames,
+            relocalised_frames=frames.relocalised_frames,
+            unmapped_frames=frames.unmapped_frames,
+            device=describe(device, config),
+            versions=versions(),
+            peak_gpu_memory_gb=peak,
+            counters=dict(vars(self.source.counters)),
+            frame_age_ms=FrameAges.of(frames.results),
+            runtime=report.summary() if report is not None else {},
+            time=timing_summary(frames, report) if report is not None else None,
+            ate=ate,
+        )
+
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
         return [o for o in (self.intrinsics, self.saver, self.viewer) if o is not None]
 
 
-def describe_run(source: str, live: bool, config: Config, **details: Any) -> dict[str, Any]:
-    """What a checkpoint records of its run, so that a resume can tell it continues the same one:
-    the source's name, whether it is live, the kind of map, and `details` (JSON-able: sizes, slicing)."""
-    gaussians = {"gaussians": config.gaussians.kind, "isotropic": config.gaussians.isotropic}
-    return {"source": source, "live": live, **gaussians, **details}
-
-
 def open_session(
     config: Config,
     source: Source,
-    folder: Path,
+    folder: RunFolder,
     *,
     progress: bool,
-    run_info: dict[str, Any],
+    run: RunDescription,
     save_every_s: float,
     stop_on_failure: bool = False,
     resume: Checkpoint | None = None,
@@ -95,14 +124,13 @@ def open_session(
     total: int | None = None,
 ) -> Session:
     """Write the config into `folder` and build SLAM (continuing from `resume`, whose frames'
-    stamps are `earlier`), the result sink (a bar over `total` frames), the periodic save (every
-    `save_every_s`; on a write failure it stops the run if `stop_on_failure`, else reports it)
-    and the viewer (when the config enables it). `config` must be complete (`complete_config`);
-    `run_info` (`describe_run`) goes into every checkpoint."""
+    stamps are `earlier`), the result sink (frames.csv and a bar over `total` frames), the
+    periodic save (every `save_every_s`; on a write failure it stops the run if
+    `stop_on_failure`, else reports it) and the viewer (when the config enables it). `config`
+    must be complete (`complete_config`); `run` goes into every checkpoint."""
     device = resolve_device(config.run.device)
-    run_folder = RunFolder(folder, run_info)
-    run_folder.write_config(config)
-    log.info("device: %s; run folder: %s", describe(device, config), run_folder.path)
+    folder.write_config(config)
+    log.info("device: %s; run folder: %s", describe(device, config), folder.path)
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
     initial = 0
     if resume is not None:
@@ -110,12 +138,27 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    viewer = attach_viewer(config, slam.renderer, run_folder, f"gsplatam: {source.name}")  # first: it may be missing
-    saver = PeriodicSave(run_folder, save_every_s, earlier, stop_on_failure)
-    sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
+    viewer = attach_viewer(config, slam.renderer, folder, f"gsplatam: {source.name}")  # first: it may be missing
+    saver = PeriodicSave(folder, run, save_every_s, earlier, stop_on_failure)
+    frames = FrameLog()
+    bar = ProgressBar(frames, total, initial, progress)
+    sink = ResultSink(frames, [_frame_rows(folder, saver), bar])
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
-    intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
-    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services)
+    intrinsics = IntrinsicsRecorder(folder.intrinsics)
+    return Session(config, device, folder, slam, source, sink, bar, intrinsics, saver, viewer, services)
+
+
+def _frame_rows(folder: RunFolder, saver: PeriodicSave) -> ResultConsumer:
+    """Each result's row into frames.csv; a row that cannot be written is reported as a failed
+    save (a dataset run then stops, a live daemon goes on)."""
+
+    def write(result: FrameResult) -> None:
+        try:
+            folder.append_frame(FrameRow.of(result))
+        except OSError as exc:
+            saver.report_failure(f"the row of frame {result.index} in frames.csv", exc)
+
+    return write
 
 
 def slam_stages(session: Session) -> list[ThreadedStage]:
@@ -154,7 +197,7 @@ def execute_session(
             return execute(graph, session.config.run.loader)
         return _profiled(graph, session)
     finally:
-        session.sink.close()
+        session.bar.close()
         session.saver.close()
         session.folder.close()
         if session.viewer is not None:
@@ -162,24 +205,17 @@ def execute_session(
 
 
 def _profiled(graph: Graph, session: Session) -> RuntimeReport:
-    """Run under the torch profiler; write trace.json and profile.txt into the run folder."""
+    """Run under the torch profiler; write its trace and profile.txt into the run folder."""
     cuda = session.device.type == "cuda"
-    folder = session.folder.path
+    folder = session.folder
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities, experimental_config=all_threads_config()) as prof:
         report = execute(graph, session.config.run.loader)
-    partial_trace = folder / ".trace.json.tmp"  # the profiler writes the file itself: renamed when complete
-    try:
-        prof.export_chrome_trace(str(partial_trace))
-        os.replace(partial_trace, folder / "trace.json")
-    except BaseException:
-        with contextlib.suppress(OSError):
-            partial_trace.unlink()
-        raise
+    folder.write_trace(lambda path: prof.export_chrome_trace(str(path)))
     summary, table = summarise(prof, cuda, report.wall_s)
     report.profile = summary
-    atomic_write_text(folder / "profile.txt", _profile_text(summary, table, report.wall_s, cuda))
-    log.info("profile: %s and %s", folder / "trace.json", folder / "profile.txt")
+    folder.write_profile(_profile_text(summary, table, report.wall_s, cuda))
+    log.info("profile: %s and %s", folder.trace, folder.profile)
     return report
 
 

@@ -57,6 +57,20 @@ def _write_temporary(path: Path, write: Writer) -> str:
     return tmp
 
 
+def atomic_export(path: Path, export: Callable[[Path], None]) -> None:
+    """For a library that writes a file itself, by name (the torch profiler's trace): `export`
+    writes a temporary path beside `path`, which is renamed over `path` once complete."""
+    staged = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        export(staged)
+        os.replace(staged, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            staged.unlink()
+        raise
+    _sync_folder(path.parent)
+
+
 def bytes_writer(data: bytes) -> Writer:
     def write(f: IO[bytes]) -> None:
         f.write(data)

@@ -17,6 +17,7 @@ from safetensors.torch import save
 
 from pipeline.errors import DataError
 from pipeline.files.atomic import atomic_write_bytes
+from pipeline.outputs.run_description import RunDescription
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
 from pipeline.slam.keyframes import Keyframe
@@ -27,13 +28,13 @@ VERSION = 1
 LEGACY_NAME = "checkpoint.pt"  # the pickle checkpoints of gsplatam 0.1, never loaded
 
 
-def write_checkpoint(path: Path, checkpoint: Checkpoint, run: dict[str, Any]) -> None:
-    """Write `checkpoint` atomically; `run` (JSON-able) describes the run it belongs to, so that a
-    resume can check it continues the same dataset, size and map kind."""
+def write_checkpoint(path: Path, checkpoint: Checkpoint, run: RunDescription) -> None:
+    """Write `checkpoint` atomically; `run` describes the run it belongs to, so that a resume
+    can check it continues the same dataset, size and map kind."""
     atomic_write_bytes(path, checkpoint_bytes(checkpoint, run))
 
 
-def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
+def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
     """The checkpoint file's bytes (see `write_checkpoint`)."""
     tracking, mapping = checkpoint.tracking, checkpoint.mapping
     tensors = {f"gaussians.{n}": getattr(mapping.gaussians, n).contiguous() for n in PARAMETER_NAMES}
@@ -48,7 +49,7 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
     header = {
         "format": FORMAT,
         "version": VERSION,
-        "run": run,
+        "run": run.to_json(),
         "frames_done": checkpoint.frames_done,
         "frames_mapped": mapping.frames_seen,
         "keyframe_indices": [k.index for k in mapping.keyframes],
@@ -61,8 +62,8 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: dict[str, Any]) -> bytes:
     return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
 
 
-def read_checkpoint(path: Path) -> tuple[Checkpoint, dict[str, Any]]:
-    """-> (the checkpoint, the `run` description it was written with). Raises DataError naming
+def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
+    """-> (the checkpoint, the run it was written by). Raises DataError naming
     the file for anything that is not a complete checkpoint of this format."""
     try:
         with safe_open(str(path), framework="pt") as f:
@@ -78,7 +79,7 @@ def read_checkpoint(path: Path) -> tuple[Checkpoint, dict[str, Any]]:
             raise ValueError(f"format {header.get('format')!r}")
         if header.get("version") != VERSION:
             raise ValueError(f"version {header.get('version')!r}, this gsplatam reads version {VERSION}")
-        return _checkpoint_of(header, tensors), header["run"]
+        return _checkpoint_of(header, tensors), RunDescription.from_json(header["run"])
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from pipeline.errors import OutputError
 from pipeline.frame import DeviceFrame
+from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.slam.results import FrameResult
 from pipeline.slam.state import Checkpoint
@@ -30,12 +31,19 @@ class PeriodicSave:
     A failed write (a save, or a frames.csv line: `report_failure`) is logged once, until a save
     works again, and kept in `error` for the status; the files of the last complete save stay.
     With `stop_on_failure` the next frame boundary then raises OutputError, ending the run (a
-    dataset run stops; a live daemon goes on). `earlier` holds the frames a resumed run did before."""
+    dataset run stops; a live daemon goes on). `run` describes the run in every checkpoint;
+    `earlier` holds the frames a resumed run did before."""
 
     def __init__(
-        self, folder: RunFolder, every_s: float, earlier: Sequence[FrameStamp] = (), stop_on_failure: bool = False
+        self,
+        folder: RunFolder,
+        run: RunDescription,
+        every_s: float,
+        earlier: Sequence[FrameStamp] = (),
+        stop_on_failure: bool = False,
     ) -> None:
         self.folder = folder
+        self.run = run
         self.every_s = every_s
         self.stop_on_failure = stop_on_failure
         self.stamps: list[FrameStamp] = list(earlier)  # one per frame SLAM has done
@@ -81,7 +89,7 @@ class PeriodicSave:
         references = [r for _, r in stamps if r is not None]
         reference = np.stack(references) if references and len(references) == len(stamps) else None
         try:
-            self.folder.write_state(checkpoint, np.array([t for t, _ in stamps]), reference)
+            self.folder.write_state(checkpoint, self.run, np.array([t for t, _ in stamps]), reference)
         except OSError as exc:
             self.report_failure("trajectory, map and checkpoint", exc)
             return False

@@ -29,7 +29,7 @@ def test_a_full_disk_is_reported_once_slam_goes_on_and_the_last_complete_save_st
     real_write = RunFolder.write_state
 
     def full_after_the_first_save(self: RunFolder, *args: Any) -> None:
-        saves.append(len(args[1]))
+        saves.append(len(args[2]))
         if len(saves) > 1:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real_write(self, *args)
@@ -65,9 +65,11 @@ def test_the_bar_shows_the_daemons_counters_without_computing_the_status() -> No
     from types import SimpleNamespace
 
     from pipeline.source import SourceCounters
+    from pipeline.stages.frame_log import FrameLog
 
-    sink = SimpleNamespace(results=[object()] * 3, arrivals=[])
-    session = SimpleNamespace(source=SimpleNamespace(counters=SourceCounters(received=7)), sink=sink)
+    frames = FrameLog()
+    frames.results.extend([object()] * 3)  # type: ignore[list-item]
+    session = SimpleNamespace(source=SimpleNamespace(counters=SourceCounters(received=7)), log=frames)
     graph = SimpleNamespace(dropped=lambda: {"source": 2, "uploaded": 1})
     counters = serve_module.bar_counters(session, graph)  # type: ignore[arg-type]
     assert counters == {"received": 7, "processed": 3, "dropped": 3, "age": "-"}

@@ -14,6 +14,7 @@ from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
 from pipeline.errors import DataError
 from pipeline.outputs.checkpoint import read_checkpoint, write_checkpoint
+from pipeline.outputs.run_description import RunDescription
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.state import Checkpoint
@@ -43,9 +44,9 @@ def _checkpoint(frames: int = 3, prior: bool = True) -> Checkpoint:
 @pytest.mark.parametrize("prior", [True, False])
 def test_a_checkpoint_round_trips_every_field(tmp_path: Path, prior: bool) -> None:
     saved = _checkpoint(prior=prior)
-    write_checkpoint(tmp_path / "c.safetensors", saved, {"dataset": "room", "size": [5, 4]})
+    write_checkpoint(tmp_path / "c.safetensors", saved, RunDescription("room", size=(5, 4)))
     loaded, run = read_checkpoint(tmp_path / "c.safetensors")
-    assert run == {"dataset": "room", "size": [5, 4]}
+    assert run == RunDescription("room", size=(5, 4))
     for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
         assert torch.equal(getattr(loaded.gaussians, name), getattr(saved.gaussians, name))
     assert [k.index for k in loaded.keyframes] == [0, 2]
@@ -68,7 +69,7 @@ def test_a_checkpoint_round_trips_every_field(tmp_path: Path, prior: bool) -> No
 def test_a_broken_checkpoint_is_a_data_error_naming_the_file(tmp_path: Path, content: bytes | str) -> None:
     path = tmp_path / "checkpoint.safetensors"
     if content == "truncated":
-        write_checkpoint(path, _checkpoint(), {})
+        write_checkpoint(path, _checkpoint(), RunDescription("room"))
         path.write_bytes(path.read_bytes()[:-40])
     else:
         path.write_bytes(content)

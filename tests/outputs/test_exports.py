@@ -21,6 +21,7 @@ from pipeline.outputs.exports.nerfstudio import DEPTH_UNITS_PER_METRE
 from pipeline.outputs.exports.splat import SPLAT_RECORD
 from pipeline.outputs.intrinsics import CameraIntrinsics, write_intrinsics
 from pipeline.outputs.ply import read_ply
+from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.slam.gaussian_map import concatenate, seed_gaussians
 from pipeline.slam.keyframes import Keyframe
@@ -63,7 +64,7 @@ def write_gt_run(root: Path) -> Path:
     (root / "run").mkdir()
     folder = RunFolder(root / "run")
     folder.write_config(replace(load_config("tiny"), dataset=DatasetConfig(path=str(root / "room"))))
-    folder.write_state(checkpoint, np.array([r.timestamp for r in dataset.refs]), None)
+    folder.write_state(checkpoint, RunDescription("room"), np.array([r.timestamp for r in dataset.refs]), None)
     write_intrinsics(folder.intrinsics, CameraIntrinsics.of_matrix(frames[0].intrinsics, ROOM.width, ROOM.height))
     return folder.path
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import IO
 
@@ -16,8 +17,10 @@ from conftest import make_checkpoint
 from pipeline.errors import OutputError
 from pipeline.files import atomic
 from pipeline.files.atomic import atomic_write_all, bytes_writer
+from pipeline.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.outputs.periodic_save import PeriodicSave
-from pipeline.outputs.run_folder import FRAME_COLUMNS, RunFolder
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render.types import Gaussians
 from pipeline.slam.state import Checkpoint
 
@@ -50,6 +53,14 @@ def test_a_full_disk_at_fsync_leaves_no_temporary_file(tmp_path: Path, monkeypat
     assert list(tmp_path.iterdir()) == []
 
 
+ROOM = RunDescription("room")
+
+
+def _row(index: int) -> FrameRow:
+    """A frames.csv line of zeros but for its index."""
+    return FrameRow(index, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0.0, 0.0, "", "", False, 0, None, None)
+
+
 def _checkpoint(frames: int) -> Checkpoint:
     n = 8
     gaussians = Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n, 1), torch.zeros(n), torch.rand(n, 3))
@@ -57,8 +68,8 @@ def _checkpoint(frames: int) -> Checkpoint:
 
 
 def test_a_full_disk_keeps_the_last_complete_save(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    folder = RunFolder(tmp_path, {"source": "room"})
-    folder.write_state(_checkpoint(2), np.array([0.0, 0.1]), None)
+    folder = RunFolder(tmp_path)
+    folder.write_state(_checkpoint(2), ROOM, np.array([0.0, 0.1]), None)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     real = atomic._write_temporary
 
@@ -69,7 +80,7 @@ def test_a_full_disk_keeps_the_last_complete_save(tmp_path: Path, monkeypatch: p
 
     monkeypatch.setattr(atomic, "_write_temporary", full_at_the_map)
     with pytest.raises(OSError):
-        folder.write_state(_checkpoint(3), np.array([0.0, 0.1, 0.2]), None)
+        folder.write_state(_checkpoint(3), ROOM, np.array([0.0, 0.1, 0.2]), None)
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # trajectory and checkpoint too
     assert folder.read_checkpoint()[0].frames_done == 2
 
@@ -95,7 +106,7 @@ def test_a_failing_save_is_reported_once_and_stops_only_a_run_that_asks(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, stop_on_failure: bool
 ) -> None:
     folder = RunFolder(tmp_path)
-    saver = PeriodicSave(folder, every_s=0.0, stop_on_failure=stop_on_failure)
+    saver = PeriodicSave(folder, ROOM, every_s=0.0, stop_on_failure=stop_on_failure)
     slam = _Slam()
     real = RunFolder.write_state
     full = [False]
@@ -135,7 +146,7 @@ def test_a_failing_save_is_reported_once_and_stops_only_a_run_that_asks(
 
 
 def test_a_final_save_that_fails_says_what_is_kept(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    saver = PeriodicSave(RunFolder(tmp_path), every_s=1e9)
+    saver = PeriodicSave(RunFolder(tmp_path), ROOM, every_s=1e9)
 
     def full(*args) -> None:  # type: ignore[no-untyped-def]
         raise _enospc()
@@ -147,21 +158,22 @@ def test_a_final_save_that_fails_says_what_is_kept(tmp_path: Path, monkeypatch: 
 
 def test_frames_csv_keeps_the_rows_of_the_checkpointed_frames_and_drops_a_cut_line(tmp_path: Path) -> None:
     folder = RunFolder(tmp_path)
-    row = {name: "0" for name in FRAME_COLUMNS} | {"lost": "pose jumped 0.4 m, twice"}
-    folder.append_frames([{**row, "index": i} for i in range(5)])
+    row = replace(_row(0), lost="pose jumped 0.4 m, twice")
+    for i in range(5):
+        folder.append_frame(replace(row, index=i))
     folder.close()
     with open(folder.frames_csv, "a") as f:
         f.write("5,0.1,0.2")  # a kill or a full disk in the middle of a line
     folder.keep_frames(3)
     lines = folder.frames_csv.read_text().splitlines()
-    assert lines[0] == ",".join(FRAME_COLUMNS) and [line.split(",")[0] for line in lines[1:]] == ["0", "1", "2"]
-    folder.append_frames([{**row, "index": 3}])
+    assert lines[0] == ",".join(COLUMNS) and [line.split(",")[0] for line in lines[1:]] == ["0", "1", "2"]
+    folder.append_frame(replace(row, index=3))
     folder.close()
     assert folder.frames_csv.read_text().splitlines()[-1].startswith("3,")
 
 
 def test_every_frames_csv_line_is_on_disk_as_soon_as_it_is_written(tmp_path: Path) -> None:
     folder = RunFolder(tmp_path)
-    folder.append_frames([{name: "1" for name in FRAME_COLUMNS}])
+    folder.append_frame(_row(1))
     assert len(folder.frames_csv.read_text().splitlines()) == 2  # read by another reader, before any close
     folder.close()

@@ -20,6 +20,7 @@ from pipeline.geometry import (
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.outputs.checkpoint import read_checkpoint, write_checkpoint
 from pipeline.outputs.ply import read_ply, write_ply
+from pipeline.outputs.run_description import RunDescription
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.keyframes import Keyframe, overlap_fractions, select_window
@@ -224,9 +225,9 @@ def test_slam_state_survives_a_checkpoint(replica_seq, tmp_path) -> None:
     resumed = SplaTAM(config, renderer, CPU)
     for f in frames[:2]:
         resumed.step(f)
-    write_checkpoint(tmp_path / "checkpoint.safetensors", resumed.checkpoint(), {"dataset": "room"})
+    write_checkpoint(tmp_path / "checkpoint.safetensors", resumed.checkpoint(), RunDescription("room"))
     saved, run = read_checkpoint(tmp_path / "checkpoint.safetensors")
-    assert run == {"dataset": "room"} and saved.frames_done == 2
+    assert run == RunDescription("room") and saved.frames_done == 2
     fresh = SplaTAM(config, renderer, CPU)
     fresh.restore(saved)
     for f in frames[2:4]:

@@ -27,6 +27,7 @@ from pipeline.slam.keyframes import Keyframe
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # right-multiplied: flips the camera's y and z axes
 DEPTH_UNITS_PER_METRE = 1000.0  # millimetres; nerfstudio's depth_unit_scale_factor is the inverse, 1e-3
 POINTS_FILE = "sparse_pc.ply"
+WRITTEN = ("images/frame_*.png", "depth/frame_*.png", "transforms.json", POINTS_FILE)  # in its folder
 
 
 def opengl_c2w(c2w_opencv: np.ndarray) -> np.ndarray:

@@ -28,12 +28,16 @@ from pipeline.files.images import write_color, write_depth_png
 from pipeline.files.trajectory import write_tum_trajectory
 from pipeline.frame import Frame
 from pipeline.source import Source
-from pipeline.sources.datasets.base import write_intrinsics_file
+from pipeline.sources.datasets.base import INTRINSICS_FILE, write_intrinsics_file
 from pipeline.sources.datasets.tum import DEPTH_SCALE
 
 log = logging.getLogger("gsplatam")
 
 QUEUE_FRAMES = 32  # frames waiting for the disk at most
+COLOR_LIST = "rgb.txt"  # the listings of the TUM layout (and groundtruth.txt with poses)
+DEPTH_LIST = "depth.txt"
+POSES = "groundtruth.txt"
+WRITTEN = ("rgb/*.png", "depth/*.png", COLOR_LIST, DEPTH_LIST, POSES, INTRINSICS_FILE)  # in its folder
 LISTING_EVERY = 30  # rgb.txt, depth.txt and groundtruth.txt are rewritten after this many frames (and at the end)
 
 
@@ -77,13 +81,13 @@ class TumRecorder:
     def _write_listings(self) -> None:
         rows = sorted(self._rows, key=lambda row: row[0])  # decode threads may finish out of order
         header = "# recorded by gsplatam serve (live.record)\n# timestamp filename\n"
-        for kind in ("rgb", "depth"):
+        for kind, listing in (("rgb", COLOR_LIST), ("depth", DEPTH_LIST)):
             lines = "".join(f"{t:.6f} {kind}/{name}\n" for t, name, _ in rows)
-            atomic_write_text(self.folder / f"{kind}.txt", header + lines)
+            atomic_write_text(self.folder / listing, header + lines)
         posed = [(t, pose) for t, _, pose in rows if pose is not None]
         if posed:
             times, poses = zip(*posed)
-            write_tum_trajectory(self.folder / "groundtruth.txt", np.array(times), np.stack(poses))
+            write_tum_trajectory(self.folder / POSES, np.array(times), np.stack(poses))
 
     def close(self) -> None:
         """Write what is queued and the listings; safe to call twice."""

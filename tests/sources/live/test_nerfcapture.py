@@ -32,7 +32,7 @@ from pipeline.sources.live.nerfcapture import (
     opencv_to_arkit,
     sample_from_frame,
 )
-from pipeline.stages.sinks import ate_so_far_cm
+from pipeline.stages.frame_log import ate_so_far_cm
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
-"""Where a run writes: a fresh folder per run, never an earlier run's, and one writer at a time.
+"""Claiming the folder a run writes: its name, its lock and `latest`, in one place. A fresh folder
+per run, never an earlier run's, and one writer at a time.
 
 Without a name a run gets `<stem>-YYYYmmdd-HHMMSS` under the output folder (`-2`, `-3`, ...
 when two start in one second) and the output folder's `latest` points at the newest run (a
@@ -19,8 +20,7 @@ from pathlib import Path
 from pipeline.errors import UserError
 from pipeline.files.atomic import atomic_write_text
 from pipeline.files.folders import make_folder
-from pipeline.outputs.run_folder import RUN_FILES, RunFolder
-from pipeline.outputs.run_lock import RunLock
+from pipeline.outputs.run_folder import RunFolder
 
 log = logging.getLogger("gsplatam")
 
@@ -35,26 +35,26 @@ def check_output(output: Path) -> None:
 
 
 @contextlib.contextmanager
-def new_run_folder(output: Path, stem: str, name: str = "", overwrite: bool = False) -> Iterator[Path]:
+def new_run_folder(output: Path, stem: str, name: str = "", overwrite: bool = False) -> Iterator[RunFolder]:
     """A folder for a new run under `output`, locked while the caller writes it: `name` if given
     (refused while it holds an earlier run, unless `overwrite`), else `<stem>-<timestamp>`."""
     check_output(output)
     if name == LATEST:
         raise UserError(f"'{LATEST}' names the pointer to the newest run: choose another --name")
-    folder = _named(output, name) if name else _timestamped(output, stem)
-    with RunLock(folder):
+    folder = RunFolder(_named(output, name) if name else _timestamped(output, stem))
+    with folder.claimed():
         if name:
             _clear_earlier_run(folder, overwrite)
-        _point_latest_at(folder)
+        _point_latest_at(folder.path)
         yield folder
 
 
 @contextlib.contextmanager
-def existing_run_folder(folder: Path) -> Iterator[Path]:
-    """An earlier run's folder (to resume it), locked while the caller writes it."""
-    if not folder.is_dir():
-        raise UserError(f"no run folder at {folder}")
-    with RunLock(folder):
+def resumed_run_folder(folder: RunFolder) -> Iterator[RunFolder]:
+    """An earlier run's folder (to continue it), locked while the caller writes it."""
+    if not folder.path.is_dir():
+        raise UserError(f"no run folder at {folder.path}")
+    with folder.claimed():
         yield folder
 
 
@@ -76,19 +76,17 @@ def _timestamped(output: Path, stem: str) -> Path:
     raise UserError(f"cannot find a free run folder name for {output / base}")
 
 
-def _clear_earlier_run(folder: Path, overwrite: bool) -> None:
-    found = RunFolder.results_in(folder)
+def _clear_earlier_run(folder: RunFolder, overwrite: bool) -> None:
+    found = folder.earlier_run()
     if not found:
         return
     if not overwrite:
         raise UserError(
-            f"{folder} holds an earlier run ({', '.join(p.name for p in found)}): continue it with "
-            f"--resume {folder}, replace it with --overwrite, or choose another --name"
+            f"{folder.path} holds an earlier run ({', '.join(found)}): continue it with "
+            f"--resume {folder.path}, replace it with --overwrite, or choose another --name"
         )
-    for path in [folder / n for n in RUN_FILES] + list(folder.glob(".*.tmp")):
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()
-    log.info("--overwrite: removed the earlier run's files from %s", folder)
+    folder.remove_earlier_run()
+    log.info("--overwrite: removed the earlier run's files from %s", folder.path)
 
 
 def _point_latest_at(folder: Path) -> None:
