@@ -21,6 +21,7 @@ from typing import Any
 from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
+from pipeline.devices import resolve_device
 
 
 class ViserClient(threading.Thread):
@@ -68,7 +69,8 @@ def run_once(config: Any, name: str, port: int | None, map_every_s: float = 0.0)
         config = replace(config, viewer=replace(config.viewer, enabled=True, port=port, map_every_s=map_every_s))
         client = ViserClient(port)
         client.start()
-    result = run_slam(replace(config, run=replace(config.run, name=name)), progress=False, overwrite=True)
+    named = replace(config, run=replace(config.run, name=name))
+    result = run_slam(named, resolve_device(config.run.device), progress=False, overwrite=True)
     assert result.metrics is not None and result.metrics.time is not None
     t = result.metrics.time
     row = {

@@ -17,7 +17,7 @@ import torch
 
 from pipeline.app.report import WARMUP_FRAMES, versions
 from pipeline.app.run import run_slam
-from pipeline.config import Config, load_config, with_value
+from pipeline.config import Config, load_config
 from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
 from pipeline.files.atomic import atomic_write_text
@@ -77,23 +77,30 @@ def cells_of(sequences: list[str], presets: list[str], variants: list[str], repe
     return [Cell(s, p, v, r) for s in folders for p in presets for v in variants for r in range(repeats)]
 
 
-def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
+def cell_config(cell: Cell, base_overrides: list[str], output: Path) -> Config:
+    """The cell's config: its preset, its sequence, the matrix's settings, its variant's, and its
+    run folder (`cell.name` under `output`)."""
     generated = list(SYNTHETIC_SEQUENCES.get(cell.sequence, ()))
-    config = load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]))
-    if cell.sequence not in SYNTHETIC_SEQUENCES:
-        config = with_value(config, "dataset.path", cell.sequence)
-    config = with_value(config, "run.output", str(output))
-    return with_value(config, "run.name", run_name)
+    folder = [] if cell.sequence in SYNTHETIC_SEQUENCES else [f"dataset.path={cell.sequence}"]
+    here = [*folder, f"run.output={output}", f"run.name={cell.name}"]
+    return load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]) + here)
 
 
-def run_cell(cell: Cell, base_overrides: list[str], runs: Path, progress: bool, profile: bool) -> dict[str, Any]:
-    """Run one cell here (this process, or a Ray worker) -> its row, with where it ran and its
-    wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
+def bench_device(base_overrides: list[str]) -> torch.device:
+    """The device this machine runs the matrix's cells on (run.device of the matrix's settings)."""
+    return resolve_device(load_config(overrides=base_overrides).run.device)
+
+
+def run_cell(
+    cell: Cell, base_overrides: list[str], runs: Path, device: torch.device, progress: bool, profile: bool
+) -> dict[str, Any]:
+    """Run one cell here, on `device` (this process, or a Ray worker) -> its row, with where it ran
+    and its wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
     start = time.perf_counter()
     try:
-        config = cell_config(cell, base_overrides, runs, cell.name)
+        config = cell_config(cell, base_overrides, runs)
         # a cell's run folder is scratch: a later benchmark of the same cell replaces it
-        metrics = run_slam(config, profile_trace=profile, progress=progress, overwrite=True).metrics
+        metrics = run_slam(config, device, profile_trace=profile, progress=progress, overwrite=True).metrics
         if metrics is None:
             raise UserError("interrupted before its first frame")
         row = row_of(cell, metrics)
@@ -160,15 +167,21 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
 
 
 def run_matrix(
-    cells: list[Cell], base_overrides: list[str], runs: Path, progress: bool, profile: bool = False
+    cells: list[Cell],
+    base_overrides: list[str],
+    runs: Path,
+    device: torch.device,
+    progress: bool,
+    profile: bool = False,
 ) -> dict[str, Any]:
-    """Run every cell here, one after the other; run folders (and the generated synthetic room) go under `runs`."""
+    """Run every cell here on `device`, one after the other; run folders (and the generated
+    synthetic room) go under `runs`."""
     start = time.perf_counter()
     rows = []
     for done, cell in enumerate(cells):
         log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
-        rows.append(run_cell(cell, base_overrides, runs, progress, profile))
-    return report_of(rows, base_overrides, profile, time.perf_counter() - start, cluster=None)
+        rows.append(run_cell(cell, base_overrides, runs, device, progress, profile))
+    return report_of(rows, base_overrides, profile, time.perf_counter() - start, device, cluster=None)
 
 
 def report_of(
@@ -176,12 +189,13 @@ def report_of(
     base_overrides: list[str],
     profile: bool,
     wall_s: float,
+    device: torch.device,
     cluster: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """The report of a whole matrix (rows in matrix order): the same keys for a local run and one
-    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local)."""
+    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local);
+    `device` is this machine's (the driver's, on a cluster)."""
     add_ratios(rows)
-    device = resolve_device("auto")
     return {
         "device": describe(device, load_config("base")),
         "driver": _driver_version(device),

@@ -4,12 +4,12 @@ or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from pipeline.devices import resolve_device
+from pipeline.app.setup import rendering_on
 from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
 from pipeline.outputs.exports.full_ply import write_full_ply
@@ -33,10 +33,10 @@ class Exported:
 
 
 def export_run(
-    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: str = "auto"
+    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: torch.device | None = None
 ) -> Exported:
     """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: where the
-    run folder keeps that export)."""
+    run folder keeps that export); a mesh is rendered on `device` (None: the CPU)."""
     if voxel_m <= 0:
         raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
     folder = RunFolder.existing(run_dir)
@@ -57,7 +57,10 @@ def export_run(
         write_pointcloud(target, gaussians)
         return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")
     mesh = fuse_tsdf(
-        _rendered_views(folder, checkpoint, device), folder.read_intrinsics(), voxel_m, _max_depth(checkpoint)
+        _rendered_views(folder, checkpoint, device or torch.device("cpu")),
+        folder.read_intrinsics(),
+        voxel_m,
+        _max_depth(checkpoint),
     )
     if len(mesh.triangles) == 0:
         raise DataError(f"the map of {run_dir} gives an empty mesh at {voxel_m} m voxels")
@@ -65,13 +68,12 @@ def export_run(
     return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
 
 
-def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str) -> Iterator[RGBDView]:
+def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device: torch.device) -> Iterator[RGBDView]:
     """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
     asks for the next when it has integrated the last); depth kept where the map covers the
     pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
     config = folder.read_config()
-    device = resolve_device(device_name)
-    renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
+    renderer = make_renderer(rendering_on(config, device), config.gaussians, device)
     camera = folder.read_intrinsics()
     k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
     gaussians = copied(checkpoint.gaussians, device)

@@ -128,6 +128,11 @@ def files_and_next_steps(folder: RunFolder) -> str:
     return "\n".join(lines)
 
 
+def live_outcome(folder: RunFolder, metrics: RunMetrics) -> str:
+    """What a live session printed at its end: its size, then its files and what to do next."""
+    return f"{metrics.frames} frames, {metrics.gaussians:,} Gaussians\n{files_and_next_steps(folder)}"
+
+
 def run_summary(metrics: RunMetrics) -> str:
     """One markdown line for the viewer at the end of a run."""
     parts = [f"**run finished**: {metrics.frames} frames, {metrics.gaussians:,} Gaussians"]

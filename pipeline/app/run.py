@@ -13,10 +13,11 @@ from tqdm import tqdm
 
 from pipeline.app.report import run_summary
 from pipeline.app.resume import read_resumable
-from pipeline.app.session import Session, complete_config, execute_session, open_session
+from pipeline.app.session import Session, execute_session, open_session
+from pipeline.app.setup import Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.devices import resolve_device, synthetic_for
+from pipeline.devices import synthetic_for
 from pipeline.errors import OutputError, StageFailure, UserError
 from pipeline.metrics import view_quality
 from pipeline.outputs.run_description import RunDescription
@@ -42,23 +43,24 @@ class RunResult:
 
 def run_slam(
     config: Config,
+    device: torch.device,
     resume: RunFolder | None = None,
     profile_trace: bool = False,
     progress: bool = True,
     overwrite: bool = False,
 ) -> RunResult:
-    """SLAM over the configured dataset (or the generated room) into a new run folder (see
-    `run_folders`; `overwrite` replaces a named one's earlier run); `resume` continues the run
-    folder of an earlier run from its checkpoint, once it is known to be the same run.
+    """SLAM over the configured dataset (or the generated room) on `device` into a new run folder
+    (see `run_folders`; `overwrite` replaces a named one's earlier run); `resume` continues the
+    run folder of an earlier run from its checkpoint, once it is known to be the same run.
 
     Outputs are saved every `run.save_every_s` and at the end. A frame that cannot be read, or a
     folder that cannot be written, ends the run: what was processed is written and marked in
     metrics.json, then the StageFailure is raised. A signal after SLAM (evaluation, writing)
     cuts the evaluation short; the outputs are still written."""
-    device = resolve_device(config.run.device)
     if resume is None:
         check_output(Path(config.run.output))  # before a generated room is cached there
-    dataset, config = _prepare_dataset(config, device, progress)
+    dataset, setup = _open_dataset(config, device, progress)
+    config = setup.config
     run = RunDescription.of_dataset(dataset.name, dataset.format, dataset.frame_size, config)
     if resume is not None:
         claimed = resumed_run_folder(resume)
@@ -66,7 +68,7 @@ def run_slam(
         claimed = new_run_folder(Path(config.run.output), _default_name(dataset, config), config.run.name, overwrite)
     with claimed as folder:
         checkpoint = read_resumable(folder, run, len(dataset)) if resume is not None else None
-        session = _open(config, dataset, folder, run, checkpoint, progress)
+        session = _open(setup, dataset, folder, run, checkpoint, progress)
         try:
             with signals_noted() as signalled:
                 report = _execute(session, dataset, profile_trace)
@@ -83,7 +85,7 @@ def run_slam(
 
 
 def _open(
-    config: Config,
+    setup: Setup,
     dataset: Dataset,
     folder: RunFolder,
     run: RunDescription,
@@ -95,12 +97,12 @@ def _open(
     done = checkpoint.frames_done if checkpoint else 0
     folder.keep_frames(done)
     session = open_session(
-        config,
+        setup,
         DatasetSource(dataset, done),
         folder,
         progress=progress,
         run=run,
-        save_every_s=config.run.save_every_s,
+        save_every_s=setup.config.run.save_every_s,
         stop_on_failure=True,
         resume=checkpoint,
         earlier=[(r.timestamp, r.c2w_gt) for r in dataset.refs[:done]],
@@ -124,17 +126,19 @@ def _default_name(dataset: Dataset, config: Config) -> str:
     return f"{dataset.name}_{config.preset}"
 
 
-def _prepare_dataset(config: Config, device: torch.device, progress: bool) -> tuple[Dataset, Config]:
-    """Open the configured dataset (generating the embedded synthetic scene when none is given)
-    -> (the dataset, the config completed for it)."""
-    dataset_config = config.dataset
-    if not dataset_config.path:
-        synthetic = synthetic_for(config.synthetic, device)
-        path = cached_synthetic(Path(config.run.output) / "synthetic", synthetic, progress, device)
-        dataset_config = replace(dataset_config, path=str(path), format=synthetic.layout)
-        config = replace(config, synthetic=synthetic, dataset=dataset_config)
-    dataset = open_dataset(dataset_config)
-    return dataset, complete_config(config, device, dataset.format)
+def _open_dataset(config: Config, device: torch.device, progress: bool) -> tuple[Dataset, Setup]:
+    """The configured dataset, or the embedded synthetic room generated for `device` (cached
+    under the output folder), and the config finished for it."""
+    if config.dataset.path:
+        dataset = open_dataset(config.dataset)
+        return dataset, finish_config(config, device, dataset.format)
+    room = synthetic_for(config.synthetic, device)
+    path = cached_synthetic(Path(config.run.output) / "synthetic", room, progress, device)
+    changes = [("synthetic.width", room.width), ("synthetic.height", room.height), ("synthetic.frames", room.frames)]
+    setup = finish_config(
+        config, device, room.layout, changes=[*changes, ("dataset.path", str(path)), ("dataset.format", room.layout)]
+    )
+    return open_dataset(setup.config.dataset), setup
 
 
 def _finish(

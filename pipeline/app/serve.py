@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -20,10 +20,10 @@ import torch
 
 from pipeline.app.remote_control import RemoteControl
 from pipeline.app.report import run_summary
-from pipeline.app.session import Session, complete_config, execute_session, open_session
+from pipeline.app.session import Session, execute_session, open_session
+from pipeline.app.setup import LIVE_LAYOUT, Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.devices import resolve_device
 from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.outputs.run_folders import new_run_folder
@@ -31,6 +31,7 @@ from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
 from pipeline.runtime import Graph, RuntimeReport
 from pipeline.slam.results import FrameResult
 from pipeline.source import Source
+from pipeline.sources.cameras import open_source
 from pipeline.sources.live.recording import RecordingSource
 from pipeline.stages.frame_log import ate_so_far_cm, referenced_poses
 from pipeline.ui.progress import ProgressBar
@@ -92,16 +93,6 @@ def _tracking_state(last: FrameResult | None) -> str:
     return f"weak: {last.warning}" if last.warning else "ok"
 
 
-def with_live_bounds(config: Config) -> Config:
-    """A live session runs for hours: keyframes and map bounded by `live.max_keyframes` and
-    `live.max_gaussians` unless keyframes.max_kept / mapping.max_gaussians are set."""
-    if not config.keyframes.max_kept:
-        config = replace(config, keyframes=replace(config.keyframes, max_kept=config.live.max_keyframes))
-    if not config.mapping.max_gaussians:
-        config = replace(config, mapping=replace(config.mapping, max_gaussians=config.live.max_gaussians))
-    return config
-
-
 def bar_counters(session: Session, graph: Graph) -> dict[str, Any]:
     """What the progress bar adds for a daemon: frames received, processed and dropped, and the
     age of the last result (a few attribute reads: no percentiles, no ATE)."""
@@ -122,24 +113,41 @@ async def status_on_bar(bar: ProgressBar, counters: Callable[[], dict[str, Any]]
             await asyncio.wait_for(stop.wait(), BAR_EVERY_S)
 
 
-def serve(
+def serve_live(
+    spec: str,
     config: Config,
+    device: torch.device,
+    progress: bool = True,
+    overwrite: bool = False,
+    control: RemoteControl | None = None,
+    changes: Sequence[tuple[str, Any]] = (),
+) -> ServeResult:
+    """`serve` from the live camera `spec` names (sources/cameras.py), with `config` finished for
+    a live session on `device` (`changes`: the session's own, setup.finish_config)."""
+    setup = finish_config(config, device, LIVE_LAYOUT, live=True, changes=changes)
+    source = open_source(spec, setup.config.live, device)
+    log.info("live from %s -> SLAM until Ctrl-C, which saves and stops", spec)
+    return serve(setup, source, progress, overwrite, control)
+
+
+def serve(
+    setup: Setup,
     source: Source,
     progress: bool = True,
     overwrite: bool = False,
     control: RemoteControl | None = None,
 ) -> ServeResult:
     """Reconstruct from `source` until it ends or SIGINT/SIGTERM (or `control` stops it, from
-    another thread); save periodically and at the end, into a new run folder (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save
-    that fails (a full disk) is reported once in the log and the status and SLAM goes on; a
-    final save that fails raises OutputError (the last complete save stays)."""
-    device = resolve_device(config.run.device)
-    config = with_live_bounds(complete_config(config, device, "tum"))  # a phone's depth is a real sensor's, as TUM's
+    another thread); save periodically and at the end, into a new run folder
+    (`live_<source>_<preset>-<timestamp>`, or `run.name`). A save that fails (a full disk) is
+    reported once in the log and the status and SLAM goes on; a final save that fails raises
+    OutputError (the last complete save stays). `setup` is finished for a live session."""
+    config = setup.config
     stem = f"live_{source.name}_{config.preset}"
     with new_run_folder(Path(config.run.output), stem, config.run.name, overwrite) as folder:
         recording = RecordingSource(source, folder.recording) if config.live.record else None
         session = open_session(
-            config,
+            setup,
             recording or source,
             folder,
             progress=progress,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -15,15 +15,16 @@ from torch.profiler import ProfilerActivity, profile
 
 from pipeline.app.profiling import all_threads_config, summarise
 from pipeline.app.report import timing_summary, versions
-from pipeline.config import Config, switched_on, with_dataset_defaults
-from pipeline.devices import describe, resolve_device
+from pipeline.app.setup import Setup
+from pipeline.config import Config, switched_on
+from pipeline.devices import describe
 from pipeline.outputs.frame_row import FrameRow
 from pipeline.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
 from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
-from pipeline.render import make_renderer, resolve_backend
+from pipeline.render import make_renderer
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
@@ -38,13 +39,6 @@ from pipeline.ui.progress import ProgressBar
 from pipeline.ui.viewer_feed import ViewerFeed, attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
-
-
-def complete_config(config: Config, device: torch.device, dataset_format: str) -> Config:
-    """The config as the run uses it: the render backend resolved for `device` and the values
-    SplaTAM tunes per dataset family filled in (written into the run folder as such)."""
-    config = with_dataset_defaults(config, dataset_format)
-    return replace(config, render=replace(config.render, backend=resolve_backend(config.render, device)))
 
 
 @dataclass
@@ -111,7 +105,7 @@ class Session:
 
 
 def open_session(
-    config: Config,
+    setup: Setup,
     source: Source,
     folder: RunFolder,
     *,
@@ -126,9 +120,9 @@ def open_session(
     """Write the config into `folder` and build SLAM (continuing from `resume`, whose frames'
     stamps are `earlier`), the result sink (frames.csv and a bar over `total` frames), the
     periodic save (every `save_every_s`; on a write failure it stops the run if
-    `stop_on_failure`, else reports it) and the viewer (when the config enables it). `config`
-    must be complete (`complete_config`); `run` goes into every checkpoint."""
-    device = resolve_device(config.run.device)
+    `stop_on_failure`, else reports it) and the viewer (when the config enables it). `run`
+    goes into every checkpoint."""
+    config, device = setup.config, setup.device
     folder.write_config(config)
     log.info("device: %s; run folder: %s", describe(device, config), folder.path)
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)

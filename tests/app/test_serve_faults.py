@@ -11,14 +11,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 from live_helpers import free_port
 
 from pipeline.app import serve as serve_module
+from pipeline.app.setup import LIVE_LAYOUT, finish_config
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import OutputError
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.source import DatasetSource
+
+CPU = torch.device("cpu")
 
 
 @pytest.mark.slow
@@ -49,7 +53,7 @@ def test_a_full_disk_is_reported_once_slam_goes_on_and_the_last_complete_save_st
     source = DatasetSource(open_dataset(DatasetConfig(path=str(replica_seq))))
     with caplog.at_level(logging.INFO, "gsplatam"):
         with pytest.raises(OutputError, match=r"No space left on device; the last complete save \(1 frames\) is kept"):
-            serve_module.serve(config, source, progress=False)
+            serve_module.serve(finish_config(config, CPU, LIVE_LAYOUT, live=True), source, progress=False)
     reports = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(saves) >= 3 and len(reports) == 1  # periodic saves and the final one failed: one report
     status = readers[0]()

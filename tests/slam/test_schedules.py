@@ -230,7 +230,7 @@ def test_stopping_an_overlapped_run_leaves_a_complete_resumable_folder(
     monkeypatch.setattr(ResultSink, "consume", consume_then_stop)
     config = load_config("tiny", overrides=FAST + ["slam.schedule=overlapped", f"dataset.path={replica_seq}"])
     config = with_value(with_value(config, "run.output", str(tmp_path)), "run.name", "r")
-    result = run_slam(config, progress=False)
+    result = run_slam(config, CPU, progress=False)
     assert result.metrics is not None and result.metrics.interrupted
     folder = result.folder.path
     saved, _ = read_checkpoint(folder / "checkpoint.safetensors")

@@ -24,13 +24,14 @@ import cyclonedds.idl as idl
 import cyclonedds.idl.annotations as annotate
 import cyclonedds.idl.types as types
 import numpy as np
+import torch
 from cyclonedds.core import InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from pipeline.config import PoseUse
+from pipeline.config import LiveConfig, PoseUse
 from pipeline.errors import DataError
 from pipeline.frame import Frame
 from pipeline.source import SourceCounters
@@ -298,3 +299,8 @@ def sample_from_frame(frame: Frame, frame_id: int, c2w_world: np.ndarray) -> Spl
         depth_scale=10.0,
         depth_image=np.ascontiguousarray(depth, dtype=np.float32).tobytes(),
     )
+
+
+def open_nerfcapture(address: str, live: LiveConfig, device: torch.device) -> NeRFCaptureSource:
+    """`nerfcapture:[DOMAIN]` (sources/cameras.py): the DDS domain given, else `live.dds_domain`."""
+    return NeRFCaptureSource(live.device_pose, int(address) if address else live.dds_domain)

@@ -22,6 +22,7 @@ from urllib.parse import urlsplit
 
 import aiohttp
 import av
+import torch
 from aiortc import RTCConfiguration, RTCPeerConnection, RTCRtpCodecCapability, RTCRtpReceiver, RTCSessionDescription
 from aiortc import sdp as sdp_text
 from aiortc.contrib.media import MediaBlackhole
@@ -29,6 +30,7 @@ from aiortc.exceptions import OperationError
 from aiortc.mediastreams import MediaStreamError, MediaStreamTrack
 
 from pipeline.config import ColorEncoding, LiveConfig
+from pipeline.devices import live_max_width
 from pipeline.errors import DataError, UserError
 from pipeline.files.images import resize_rgbd
 from pipeline.frame import Frame
@@ -406,3 +408,10 @@ def halved_to(width: int, height: int, max_width: int) -> tuple[int, int]:
     while max_width and width > max_width and width % 2 == 0 and height % 2 == 0:
         width, height = width // 2, height // 2
     return width, height
+
+
+def open_record3d(address: str, live: LiveConfig, device: torch.device) -> Record3DSource:
+    """`record3d:URL` (sources/cameras.py): frames at `live.width` x `live.height`, or the
+    phone's halved to what suits `device`."""
+    size = (live.width, live.height) if live.width else None
+    return Record3DSource(address, live, size, live_max_width(device))

@@ -325,8 +325,8 @@ def test_run_with_a_nerfcapture_input_is_the_live_daemon(monkeypatch, tmp_path: 
 
     calls = []
 
-    def fake_serve(config, source, progress, overwrite):  # type: ignore[no-untyped-def]
-        calls.append((config, source, overwrite))
+    def fake_serve(setup, source, progress, overwrite, control=None):  # type: ignore[no-untyped-def]
+        calls.append((setup.config, source, overwrite))
         return serve_module.ServeResult(None, None)  # type: ignore[arg-type]
 
     monkeypatch.setattr(serve_module, "serve", fake_serve)
