@@ -6,6 +6,7 @@ them in worker threads.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,7 +68,7 @@ class Dataset:
             color, depth, intrinsics = resize_rgbd(color, depth, intrinsics, self.resize)
         return Frame(ref.index, ref.timestamp, color, depth, intrinsics, ref.c2w_gt)
 
-    def frames(self):
+    def frames(self) -> Iterator[Frame]:
         """Decode every frame in order (the synchronous path)."""
         for ref in self.refs:
             yield self.decode(ref)
