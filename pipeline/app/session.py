@@ -1,6 +1,6 @@
-"""One SLAM session, built the same way for `run` and `serve`: device, run folder, SLAM,
-its frame-boundary observers (periodic save, viewer), the graph, and its execution (with the
-profiler when asked)."""
+"""One SLAM session, built the same way for `run` and `serve` from a finished config and its
+device (setup.py) and a claimed run folder: SLAM, its frame-boundary observers (periodic save,
+viewer), the result sink, the graph, its execution (with the profiler when asked) and its metrics."""
 
 from __future__ import annotations
 
