@@ -28,12 +28,13 @@ import torch
 from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
+from pipeline.devices import resolve_device
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
-from pipeline.io.datasets.synthetic import default_intrinsics
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, copied
 from pipeline.slam.kernels import EAGER, make_kernels
 from pipeline.slam.keyframes import Keyframe
+from pipeline.sources.datasets.synthetic import default_intrinsics
 
 WARMUP = 5  # iterations run before timing: compilation, allocator and cache warm-up
 
@@ -104,7 +105,7 @@ def timed_iterations(
 def built_map(frames: int) -> tuple[Gaussians, Keyframe, Any]:
     config = load_config("tiny", overrides=[f"synthetic.frames={frames}"])
     config = with_value(config, "run.output", "/tmp/iteration_costs")
-    result = run_slam(config, progress=False)
+    result = run_slam(config, resolve_device(config.run.device), progress=False)
     saved, _ = result.folder.read_checkpoint()
     device = "cuda" if torch.cuda.is_available() else "cpu"  # the CPU only to try the script out
     return copied(saved.gaussians, device), saved.keyframes[-1], config

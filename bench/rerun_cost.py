@@ -30,9 +30,9 @@ from viewer_overhead import run_once  # bench/ is the script's folder
 
 from pipeline.app.report import versions
 from pipeline.config import Config, load_config, with_value
-from pipeline.io.outputs.atomic import atomic_write_text
-from pipeline.io.ui.rerun_feed import RerunFeed
-from pipeline.io.ui.viewer_feed import ViewerFeed
+from pipeline.files.atomic import atomic_write_text
+from pipeline.ui.rerun_feed import RerunFeed
+from pipeline.ui.viewer_feed import ViewerFeed
 
 VARIANTS = ("none", "rerun", "viser")
 PER_FRAME = ("boundary_ms", "worker_cpu_ms_per_frame", "process_cpu_s_per_frame")

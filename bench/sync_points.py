@@ -24,6 +24,7 @@ import torch
 from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
+from pipeline.devices import resolve_device
 
 OURS = ("/pipeline/", "/gsplat/")
 
@@ -63,10 +64,10 @@ def main() -> None:
     warnings.simplefilter("always")
     torch.cuda.set_sync_debug_mode("warn")
     try:
-        metrics = run_slam(config, progress=False).metrics
+        metrics = run_slam(config, resolve_device(config.run.device), progress=False).metrics
     finally:
         torch.cuda.set_sync_debug_mode("default")
-    frames = metrics["frames"] if metrics else args.frames
+    frames = metrics.frames if metrics else args.frames
     rows = [{"where": k, "count": v, "per_frame": v / frames} for k, v in counts.most_common()]
     report = {
         "device": torch.cuda.get_device_name(),

@@ -21,6 +21,7 @@ from typing import Any
 from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
+from pipeline.devices import resolve_device
 
 
 class ViserClient(threading.Thread):
@@ -68,19 +69,20 @@ def run_once(config: Any, name: str, port: int | None, map_every_s: float = 0.0)
         config = replace(config, viewer=replace(config.viewer, enabled=True, port=port, map_every_s=map_every_s))
         client = ViserClient(port)
         client.start()
-    result = run_slam(replace(config, run=replace(config.run, name=name)), progress=False, overwrite=True)
-    assert result.metrics is not None
-    t = result.metrics["time"]
+    named = replace(config, run=replace(config.run, name=name))
+    result = run_slam(named, resolve_device(config.run.device), progress=False, overwrite=True)
+    assert result.metrics is not None and result.metrics.time is not None
+    t = result.metrics.time
     row = {
         "viewer": port is not None,
         "map_every_s": map_every_s,
-        "frames": result.metrics["frames"],
-        "total_ms": 1000 * t["total_s"],
-        "tracking_ms": 1000 * t["tracking_s"],
-        "mapping_ms": 1000 * t["mapping_s"],
-        "fps_steady": t["fps_steady"],
-        "ate_cm": result.metrics["ate"]["rmse_cm"] if result.metrics["ate"] else None,
-        "gaussians": result.metrics["gaussians"],
+        "frames": result.metrics.frames,
+        "total_ms": 1000 * t.total_s,
+        "tracking_ms": 1000 * t.tracking_s,
+        "mapping_ms": 1000 * t.mapping_s,
+        "fps_steady": t.fps_steady,
+        "ate_cm": result.metrics.ate.rmse_cm if result.metrics.ate else None,
+        "gaussians": result.metrics.gaussians,
     }
     if client is not None:
         row.update(client_connected=client.connected.is_set(), messages=client.messages, megabytes=client.bytes / 1e6)

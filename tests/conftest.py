@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from pipeline.config import SyntheticConfig
-from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.state import BackendState, Checkpoint, FrontendState
+from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # one of two workers on two cores: one thread each,
     os.environ["OMP_NUM_THREADS"] = "1"  # and for the commands a test starts

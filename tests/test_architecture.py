@@ -7,8 +7,23 @@ from pathlib import Path
 
 from conftest import ROOT
 
+# The floors of the house, bottom up, as the data flows: a module imports its own floor and the
+# floors below it, never one above. Sources sit below SLAM (they cannot reach it); what a run leaves
+# and what a person watches sit above the stages that carry frames through SLAM.
+FLOORS: list[tuple[str, tuple[str, ...]]] = [
+    ("ground", ("pipeline.errors", "pipeline.extras", "pipeline.config", "pipeline.geometry", "pipeline.frame",
+                "pipeline.source", "pipeline.devices", "pipeline.files")),
+    ("sources", ("pipeline.sources",)),
+    ("maths", ("pipeline.render", "pipeline.slam", "pipeline.metrics")),
+    ("stages", ("pipeline.stages", "pipeline.runtime")),
+    ("sinks", ("pipeline.outputs", "pipeline.ui")),
+    ("commands", ("pipeline.app", "pipeline.__main__")),
+]  # fmt: skip
 MATHS_AND_STAGES = ("pipeline.slam", "pipeline.render", "pipeline.stages", "pipeline.geometry", "pipeline.metrics")
-OUTSIDE_WORLD = ("pipeline.io", "pipeline.app", "aiortc", "aiohttp", "viser", "cyclonedds", "av")
+OUTSIDE_WORLD = (
+    "pipeline.files", "pipeline.sources", "pipeline.outputs", "pipeline.ui", "pipeline.app",
+    "aiortc", "aiohttp", "viser", "cyclonedds", "av",
+)  # fmt: skip
 
 
 def _module_name(path: Path) -> str:
@@ -99,5 +114,36 @@ def test_only_the_commands_import_the_commands() -> None:
         if not name.startswith("pipeline.app") and name != "pipeline.__main__"
         for target in targets
         if target.startswith("pipeline.app")
+    }
+    assert offending == set()
+
+
+def _floor(module: str) -> int:
+    """The floor of `module` (the package itself, `pipeline`, stands on the ground)."""
+    for level, (_, packages) in enumerate(FLOORS):
+        if any(module == p or module.startswith(p + ".") for p in packages):
+            return level
+    assert module == "pipeline", f"{module} is on no floor: add it to FLOORS"
+    return 0
+
+
+def test_every_module_stands_on_a_floor_and_imports_nothing_above_it() -> None:
+    upward = {
+        (name, target, FLOORS[_floor(target)][0])
+        for name, targets in _internal(_imports()).items()
+        for target in targets
+        if _floor(target) > _floor(name)
+    }
+    assert upward == set()
+
+
+def test_sources_import_neither_slam_nor_what_sits_above_it() -> None:
+    above = tuple(p for _, packages in FLOORS[2:] for p in packages)
+    offending = {
+        (name, target)
+        for name, targets in _imports().items()
+        if name.startswith("pipeline.sources")
+        for target in targets
+        if target.startswith(above)
     }
     assert offending == set()

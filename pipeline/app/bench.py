@@ -17,10 +17,11 @@ import torch
 
 from pipeline.app.report import WARMUP_FRAMES, versions
 from pipeline.app.run import run_slam
-from pipeline.config import Config, load_config, with_value
+from pipeline.config import Config, load_config
 from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
-from pipeline.io.outputs.atomic import atomic_write_text
+from pipeline.files.atomic import atomic_write_text
+from pipeline.outputs.run_metrics import RunMetrics
 
 log = logging.getLogger("gsplatam")
 
@@ -85,23 +86,30 @@ def cells_of(sequences: list[str], presets: list[str], variants: list[str], repe
     return [Cell(s, p, v, r) for s in folders for p in presets for v in variants for r in range(repeats)]
 
 
-def cell_config(cell: Cell, base_overrides: list[str], output: Path, run_name: str) -> Config:
+def cell_config(cell: Cell, base_overrides: list[str], output: Path) -> Config:
+    """The cell's config: its preset, its sequence, the matrix's settings, its variant's, and its
+    run folder (`cell.name` under `output`)."""
     generated = list(SYNTHETIC_SEQUENCES.get(cell.sequence, ()))
-    config = load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]))
-    if cell.sequence not in SYNTHETIC_SEQUENCES:
-        config = with_value(config, "dataset.path", cell.sequence)
-    config = with_value(config, "run.output", str(output))
-    return with_value(config, "run.name", run_name)
+    folder = [] if cell.sequence in SYNTHETIC_SEQUENCES else [f"dataset.path={cell.sequence}"]
+    here = [*folder, f"run.output={output}", f"run.name={cell.name}"]
+    return load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]) + here)
 
 
-def run_cell(cell: Cell, base_overrides: list[str], runs: Path, progress: bool, profile: bool) -> dict[str, Any]:
-    """Run one cell here (this process, or a Ray worker) -> its row, with where it ran and its
-    wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
+def bench_device(base_overrides: list[str]) -> torch.device:
+    """The device this machine runs the matrix's cells on (run.device of the matrix's settings)."""
+    return resolve_device(load_config(overrides=base_overrides).run.device)
+
+
+def run_cell(
+    cell: Cell, base_overrides: list[str], runs: Path, device: torch.device, progress: bool, profile: bool
+) -> dict[str, Any]:
+    """Run one cell here, on `device` (this process, or a Ray worker) -> its row, with where it ran
+    and its wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
     start = time.perf_counter()
     try:
-        config = cell_config(cell, base_overrides, runs, cell.name)
+        config = cell_config(cell, base_overrides, runs)
         # a cell's run folder is scratch: a later benchmark of the same cell replaces it
-        metrics = run_slam(config, profile_trace=profile, progress=progress, overwrite=True).metrics
+        metrics = run_slam(config, device, profile_trace=profile, progress=progress, overwrite=True).metrics
         if metrics is None:
             raise UserError("interrupted before its first frame")
         row = row_of(cell, metrics)
@@ -123,37 +131,39 @@ def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
     }
 
 
-def row_of(cell: Cell, metrics: dict[str, Any]) -> dict[str, Any]:
-    t, runtime = metrics["time"], metrics["runtime"]
-    process = metrics.get("mapping_process")  # the process schedule: mapping's own times, per frame mapped
-    ate, render = metrics.get("ate") or {}, metrics.get("render") or {}
+def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
+    t, runtime, ate, render = metrics.time, metrics.runtime, metrics.ate, metrics.render
+    assert t is not None, "a finished run is timed"
+    process = metrics.mapping_process  # the process schedule: mapping's own times, per frame mapped
+    before = metrics.render_before_final_iters
     return {
-        "sequence": metrics["dataset"],
+        "sequence": metrics.source,
         "preset": cell.preset,
         "variant": cell.variant,
         "repeat": cell.repeat,
-        "frames": metrics["frames"],
-        "tracking_ms": 1000 * t["tracking_s"],
-        "densify_ms": process["densify_ms"] if process else 1000 * t["densify_s"],
-        "mapping_ms": process["mapping_ms"] if process else 1000 * t["mapping_s"],
-        "total_ms": 1000 * t["total_s"],
-        "fps_wall": t["fps_wall"],
-        "fps_steady": t["fps_steady"],
+        "frames": metrics.frames,
+        "tracking_ms": 1000 * t.tracking_s,
+        "densify_ms": process["densify_ms"] if process else 1000 * t.densify_s,
+        "mapping_ms": process["mapping_ms"] if process else 1000 * t.mapping_s,
+        "total_ms": 1000 * t.total_s,
+        "fps_wall": t.fps_wall,
+        "fps_steady": t.fps_steady,
         "kernel_busy": runtime.get("kernel_busy_fraction")
         or (runtime.get("profile") or {}).get("kernel_busy_fraction"),
         "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
-        "gaussians": metrics["gaussians"],
-        "peak_gpu_gb": metrics.get("peak_gpu_memory_gb"),
-        "ate_rmse_cm": ate.get("rmse_cm"),
-        "ate_mean_cm": ate.get("mean_cm"),
-        "psnr_db": render.get("psnr_db"),
-        "keyframes_psnr_db": render.get("keyframes_psnr_db"),
-        "psnr_before_final_db": (metrics.get("render_before_final_iters") or {}).get("psnr_db"),
-        "ssim": render.get("ssim"),
-        "depth_l1_cm": render.get("depth_l1_cm"),
-        "lost_frames": metrics["lost_frames"],
-        "unmapped_frames": metrics.get("unmapped_frames"),
-        "warmup_frames_excluded": t["warmup_frames_excluded"],
+        "gaussians": metrics.gaussians,
+        "peak_gpu_gb": metrics.peak_gpu_memory_gb,
+        "ate_rmse_cm": ate.rmse_cm if ate else None,
+        "ate_mean_cm": ate.mean_cm if ate else None,
+        "psnr_db": render.psnr_db if render else None,
+        "keyframes_psnr_db": render.keyframes_psnr_db if render else None,
+        "psnr_before_final_db": before.psnr_db if before else None,
+        "keyframes_psnr_before_final_db": before.keyframes_psnr_db if before else None,
+        "ssim": render.ssim if render else None,
+        "depth_l1_cm": render.depth_l1_cm if render else None,
+        "lost_frames": metrics.lost_frames,
+        "unmapped_frames": metrics.unmapped_frames,
+        "warmup_frames_excluded": t.warmup_frames_excluded,
         "error": None,
     }
 
@@ -171,15 +181,21 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
 
 
 def run_matrix(
-    cells: list[Cell], base_overrides: list[str], runs: Path, progress: bool, profile: bool = False
+    cells: list[Cell],
+    base_overrides: list[str],
+    runs: Path,
+    device: torch.device,
+    progress: bool,
+    profile: bool = False,
 ) -> dict[str, Any]:
-    """Run every cell here, one after the other; run folders (and the generated synthetic room) go under `runs`."""
+    """Run every cell here on `device`, one after the other; run folders (and the generated
+    synthetic room) go under `runs`."""
     start = time.perf_counter()
     rows = []
     for done, cell in enumerate(cells):
         log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
-        rows.append(run_cell(cell, base_overrides, runs, progress, profile))
-    return report_of(rows, base_overrides, profile, time.perf_counter() - start, cluster=None)
+        rows.append(run_cell(cell, base_overrides, runs, device, progress, profile))
+    return report_of(rows, base_overrides, profile, time.perf_counter() - start, device, cluster=None)
 
 
 def report_of(
@@ -187,12 +203,13 @@ def report_of(
     base_overrides: list[str],
     profile: bool,
     wall_s: float,
+    device: torch.device,
     cluster: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """The report of a whole matrix (rows in matrix order): the same keys for a local run and one
-    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local)."""
+    on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local);
+    `device` is this machine's (the driver's, on a cluster)."""
     add_ratios(rows)
-    device = resolve_device("auto")
     return {
         "device": describe(device, load_config("base")),
         "driver": _driver_version(device),
@@ -223,7 +240,8 @@ COLUMNS = [
     ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("repeat", "{}"), ("frames", "{}"),
     ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
     ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
-    ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"), ("keyframes_psnr_db", "{:.2f}"),
+    ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
+    ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
 ]  # fmt: skip
 

@@ -4,22 +4,20 @@ or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from pipeline.config import load_config
-from pipeline.devices import resolve_device
+from pipeline.app.setup import rendering_on
 from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
-from pipeline.io.outputs.exports import FORMATS
-from pipeline.io.outputs.exports.full_ply import write_full_ply
-from pipeline.io.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
-from pipeline.io.outputs.exports.nerfstudio import write_nerfstudio
-from pipeline.io.outputs.exports.pointcloud import write_pointcloud
-from pipeline.io.outputs.exports.splat import write_splat
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.exports.full_ply import write_full_ply
+from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
+from pipeline.outputs.exports.nerfstudio import write_nerfstudio
+from pipeline.outputs.exports.pointcloud import write_pointcloud
+from pipeline.outputs.exports.splat import write_splat
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.state import Checkpoint
@@ -35,15 +33,15 @@ class Exported:
 
 
 def export_run(
-    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: str = "auto"
+    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: torch.device | None = None
 ) -> Exported:
-    """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: FORMATS[fmt]
-    inside the run folder)."""
+    """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: where the
+    run folder keeps that export); a mesh is rendered on `device` (None: the CPU)."""
     if voxel_m <= 0:
         raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
     folder = RunFolder.existing(run_dir)
     checkpoint, _ = folder.read_checkpoint()
-    target = output or folder.path / FORMATS[fmt]
+    target = output or folder.export(fmt)
     target.parent.mkdir(parents=True, exist_ok=True)
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
@@ -53,13 +51,16 @@ def export_run(
         write_splat(target, gaussians)
         return Exported(target, f"{len(gaussians):,} Gaussians, 32 bytes each")
     if fmt == "ply":
-        write_full_ply(target, gaussians, load_config(config_file=folder.config).gaussians.kind)
+        write_full_ply(target, gaussians, folder.read_config().gaussians.kind)
         return Exported(target, f"{len(gaussians):,} Gaussians with normals and f_rest_* (zeros)")
     if fmt == "pointcloud":
         write_pointcloud(target, gaussians)
         return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")
     mesh = fuse_tsdf(
-        _rendered_views(folder, checkpoint, device), folder.read_intrinsics(), voxel_m, _max_depth(checkpoint)
+        _rendered_views(folder, checkpoint, device or torch.device("cpu")),
+        folder.read_intrinsics(),
+        voxel_m,
+        _max_depth(checkpoint),
     )
     if len(mesh.triangles) == 0:
         raise DataError(f"the map of {run_dir} gives an empty mesh at {voxel_m} m voxels")
@@ -67,13 +68,12 @@ def export_run(
     return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
 
 
-def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device_name: str) -> Iterator[RGBDView]:
+def _rendered_views(folder: RunFolder, checkpoint: Checkpoint, device: torch.device) -> Iterator[RGBDView]:
     """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
     asks for the next when it has integrated the last); depth kept where the map covers the
     pixel (silhouette >= MESH_MIN_SILHOUETTE)."""
-    config = load_config(config_file=folder.config)
-    device = resolve_device(device_name)
-    renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
+    config = folder.read_config()
+    renderer = make_renderer(rendering_on(config, device), config.gaussians, device)
     camera = folder.read_intrinsics()
     k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
     gaussians = copied(checkpoint.gaussians, device)

@@ -15,8 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import ray
+import torch
 
-from pipeline.app.bench import Cell, failed_row, report_of, run_cell
+from pipeline.app.bench import Cell, bench_device, failed_row, report_of, run_cell
 from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources, summary
 
 log = logging.getLogger("gsplatam")
@@ -24,7 +25,7 @@ log = logging.getLogger("gsplatam")
 
 @ray.remote(max_retries=1)  # a worker or node that dies is retried once; an error in the cell is its row
 def _cell_task(cell: Cell, base_overrides: list[str], runs: str, profile: bool) -> dict[str, Any]:
-    return run_cell(cell, base_overrides, Path(runs), progress=False, profile=profile)
+    return run_cell(cell, base_overrides, Path(runs), bench_device(base_overrides), progress=False, profile=profile)
 
 
 def run_matrix_on_ray(
@@ -33,10 +34,12 @@ def run_matrix_on_ray(
     runs: Path,
     address: str | None,
     gpus_per_cell: float,
+    device: torch.device,
     profile: bool = False,
 ) -> dict[str, Any]:
-    """Run every cell as a Ray task -> the same report as `run_matrix`, rows in matrix order, each
-    with the node and GPU it ran on; run folders go under `runs` on the node of each cell."""
+    """Run every cell as a Ray task (on its node's device) -> the same report as `run_matrix`,
+    rows in matrix order, each with the node and GPU it ran on; run folders go under `runs` on
+    the node of each cell. `device` is this machine's, for the report."""
     check_gpu_share(gpus_per_cell, "cell")
     with connected(address) as cluster:
         declared = declared_resources(cluster, gpus_per_cell, "cell")
@@ -63,6 +66,7 @@ def run_matrix_on_ray(
             base_overrides,
             profile,
             time.perf_counter() - start,
+            device,
             cluster=summary(cluster, declared),
         )
 

@@ -21,15 +21,15 @@ from typing import Any
 
 import ray
 
-from pipeline.app.live_sources import live_source, nerfcapture_domain, source_label
 from pipeline.app.logs import configure_logging
 from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources
 from pipeline.app.remote_control import RemoteControl
-from pipeline.app.serve import serve
-from pipeline.config import Config, with_value
-from pipeline.devices import placement
+from pipeline.app.serve import serve_live
+from pipeline.config import Config
+from pipeline.devices import placement, resolve_device
 from pipeline.errors import UserError
-from pipeline.io.ui.status_http import serve_status
+from pipeline.sources.cameras import live_camera, source_label
+from pipeline.ui.status_http import serve_status
 
 log = logging.getLogger("gsplatam")
 
@@ -43,27 +43,28 @@ NAMESPACE = "gsplatam"  # the actors are named gsplatam:<session> in it (`ray li
 
 class LiveSession:
     """One source's SLAM inside a Ray actor (`LiveSessionActor`): `run` holds one of its threads
-    for the whole session while `status` and `stop` answer in the others."""
+    for the whole session while `status` and `stop` answer in the others. Its run folder is
+    `name` under `output` (absolute: a worker's working folder is not the driver's)."""
 
-    def __init__(self, name: str, spec: str, config: Config) -> None:
+    def __init__(self, name: str, spec: str, config: Config, output: str) -> None:
         configure_logging(f"gsplatam [{name}]")
-        self.name, self.spec, self.config = name, spec, config
+        self.name, self.spec, self.config, self.output = name, spec, config, output
         self.control = RemoteControl()
         self.folder: str | None = None
 
     def run(self, attempt: int) -> dict[str, Any]:
         """The session, to its end or a stop -> its frames, Gaussians and run folder. `attempt` > 0
         (after a restart) starts a new map in a new folder: the last one keeps its last save."""
-        config = self.config
-        if attempt:
-            config = with_value(config, "run.name", f"{config.run.name}_restart{attempt}")
-        self.folder = str(Path(config.run.output) / config.run.name)
-        result = serve(config, live_source(self.spec, config), progress=False, control=self.control)
-        metrics = result.metrics or {}
+        name = f"{self.name}_restart{attempt}" if attempt else self.name
+        self.folder = str(Path(self.output) / name)
+        changes = [("run.name", name), ("run.output", self.output), ("live.status_port", 0)]  # the driver's status
+        device = resolve_device(self.config.run.device)  # this node's
+        result = serve_live(self.spec, self.config, device, progress=False, control=self.control, changes=changes)
+        metrics = result.metrics
         return {
             "folder": str(result.folder.path),
-            "frames": metrics.get("frames", 0),
-            "gaussians": metrics.get("gaussians", 0),
+            "frames": metrics.frames if metrics else 0,
+            "gaussians": metrics.gaussians if metrics else 0,
         }
 
     def status(self) -> dict[str, Any]:
@@ -175,21 +176,17 @@ def _first_line(error: BaseException) -> str:
     return f"{type(cause).__name__}: {lines[0] if lines else ''}"
 
 
-def session_configs(specs: list[str], config: Config) -> list[tuple[str, Config]]:
-    """Each source's name and config: run folder `<run.name or live>_<source>` under the output
-    folder (absolute: a worker's working folder is not the driver's), no status endpoint of its own."""
+def session_names(specs: list[str], config: Config) -> list[str]:
+    """Each source's session name, its run folder's: `<run.name or live>_<source>`; a spec that
+    is not a live camera's, or a bad address, is reported here, before any actor starts."""
     prefix = config.run.name or "live"
-    output = str(Path(config.run.output).resolve())
-    named: list[tuple[str, Config]] = []
+    names: list[str] = []
     for index, spec in enumerate(specs):
-        if spec.startswith("nerfcapture:"):
-            nerfcapture_domain(spec, config)  # a bad domain is reported here, before any actor starts
+        camera, address = live_camera(spec)
+        camera.check(address)
         name = f"{prefix}_{source_label(spec)}"
-        if any(name == other for other, _ in named):
-            name = f"{name}_{index}"
-        session = with_value(with_value(config, "run.name", name), "run.output", output)
-        named.append((name, with_value(session, "live.status_port", 0)))
-    return named
+        names.append(f"{name}_{index}" if name in names else name)
+    return names
 
 
 def serve_on_ray(specs: list[str], config: Config, address: str | None, gpus_per_session: float) -> int:
@@ -197,13 +194,14 @@ def serve_on_ray(specs: list[str], config: Config, address: str | None, gpus_per
     ended; -> 0, or 1 when a session failed."""
     if config.viewer.enabled:
         raise UserError("--viewer is not available with --ray")
-    named = session_configs(specs, config)
+    names = session_names(specs, config)
+    output = str(Path(config.run.output).resolve())
     check_gpu_share(gpus_per_session, "session")
     with connected(address) as cluster:
         declared = declared_resources(cluster, gpus_per_session, "session")
         sessions = [
-            RemoteSession(name, spec, _start_actor(name, spec, session_config, declared))
-            for (name, session_config), spec in zip(named, specs)
+            RemoteSession(name, spec, _start_actor(name, spec, config, output, declared))
+            for name, spec in zip(names, specs)
         ]
         log.info("ray: %d sessions (%s each); Ctrl-C stops and saves them all", len(sessions), declared)
         asyncio.run(_drive(sessions, config))
@@ -216,9 +214,9 @@ def serve_on_ray(specs: list[str], config: Config, address: str | None, gpus_per
     return 1 if any(s.state == SessionState.FAILED for s in sessions) else 0
 
 
-def _start_actor(name: str, spec: str, config: Config, declared: dict[str, float]) -> Any:
+def _start_actor(name: str, spec: str, config: Config, output: str, declared: dict[str, float]) -> Any:
     options = {"name": f"gsplatam:{name}", "namespace": NAMESPACE, "max_concurrency": ACTOR_THREADS, **declared}
-    return LiveSessionActor.options(**options).remote(name, spec, config)
+    return LiveSessionActor.options(**options).remote(name, spec, config, output)
 
 
 async def _drive(sessions: list[RemoteSession], config: Config) -> None:

@@ -1,4 +1,5 @@
-"""What a run reports: timing summaries, software versions and the printed table."""
+"""What a run reports: its metrics (one record for datasets and live sessions), timing,
+software versions, the printed table and the files it leaves."""
 
 from __future__ import annotations
 
@@ -7,34 +8,36 @@ import os
 import platform
 import subprocess
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
+from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_metrics import RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
-from pipeline.slam.results import FrameResult
+from pipeline.stages.frame_log import FrameLog
 
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
-def timing_summary(results: list[FrameResult], report: RuntimeReport, arrivals: list[float]) -> dict[str, Any]:
+def timing_summary(frames: FrameLog, report: RuntimeReport) -> TimingRecord:
     """Mean seconds per stage after the warm-up frames, and frames per second."""
+    results = frames.results
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
     mean = {
         k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan
         for k in ("tracking", "densify", "mapping", "total")
     }
-    return {
-        "tracking_s": mean["tracking"],
-        "densify_s": mean["densify"],
-        "mapping_s": mean["mapping"],
-        "total_s": mean["total"],
-        "frames_timed": len(timed),
-        "warmup_frames_excluded": WARMUP_FRAMES,
-        "fps_wall": report.frames / report.wall_s if report.wall_s > 0 else 0.0,
-        "fps_steady": steady_fps(arrivals),
-    }
+    return TimingRecord(
+        tracking_s=mean["tracking"],
+        densify_s=mean["densify"],
+        mapping_s=mean["mapping"],
+        total_s=mean["total"],
+        frames_timed=len(timed),
+        warmup_frames_excluded=WARMUP_FRAMES,
+        fps_wall=report.frames / report.wall_s if report.wall_s > 0 else 0.0,
+        fps_steady=steady_fps(frames.arrivals),
+    )
 
 
 def steady_fps(arrivals: list[float]) -> float | None:
@@ -74,62 +77,67 @@ def _git_commit() -> str | None:
         return None
 
 
-def format_table(metrics: dict[str, Any]) -> str:
+def format_table(metrics: RunMetrics) -> str:
     """A short human-readable summary of a run's metrics."""
-    t = metrics["time"]
     rows = [
-        ("frames", f"{metrics['frames']}" + (" (interrupted)" if metrics["interrupted"] else "")),
-        ("Gaussians", f"{metrics['gaussians']:,}"),
+        ("frames", f"{metrics.frames}" + (" (interrupted)" if metrics.interrupted else "")),
+        ("Gaussians", f"{metrics.gaussians:,}"),
     ]
-    if metrics["ate"]:
-        rows.append(("ATE RMSE / mean", f"{metrics['ate']['rmse_cm']:.2f} / {metrics['ate']['mean_cm']:.2f} cm"))
-    if metrics["render"]:
-        r = metrics["render"]
+    if metrics.ate is not None:
+        rows.append(("ATE RMSE / mean", f"{metrics.ate.rmse_cm:.2f} / {metrics.ate.mean_cm:.2f} cm"))
+    if metrics.render is not None:
+        r = metrics.render
+        rows += [("PSNR", f"{r.psnr_db:.2f} dB"), ("SSIM", f"{r.ssim:.3f}"), ("depth L1", f"{r.depth_l1_cm:.2f} cm")]
+    if metrics.time is not None:
+        t = metrics.time
         rows += [
-            ("PSNR", f"{r['psnr_db']:.2f} dB"),
-            ("SSIM", f"{r['ssim']:.3f}"),
-            ("depth L1", f"{r['depth_l1_cm']:.2f} cm"),
+            ("tracking", f"{1000 * t.tracking_s:.1f} ms/frame"),
+            ("densify + keyframes", f"{1000 * t.densify_s:.1f} ms/frame"),
+            ("mapping", f"{1000 * t.mapping_s:.1f} ms/frame"),
+            ("total", f"{1000 * t.total_s:.1f} ms/frame"),
+            (
+                "throughput",
+                f"{t.fps_wall:.2f} fps over the whole run"
+                + (f", {t.fps_steady:.2f} after warm-up" if t.fps_steady else ""),
+            ),
         ]
     rows += [
-        ("tracking", f"{1000 * t['tracking_s']:.1f} ms/frame"),
-        ("densify + keyframes", f"{1000 * t['densify_s']:.1f} ms/frame"),
-        ("mapping", f"{1000 * t['mapping_s']:.1f} ms/frame"),
-        ("total", f"{1000 * t['total_s']:.1f} ms/frame"),
-        (
-            "throughput",
-            f"{t['fps_wall']:.2f} fps over the whole run"
-            + (f", {t['fps_steady']:.2f} after warm-up" if t["fps_steady"] else ""),
-        ),
-        ("tracking lost", f"{metrics['lost_frames']} frames"),
-        ("tracking weak", f"{metrics.get('weak_frames', 0)} frames (mapped; low map coverage)"),
+        ("tracking lost", f"{metrics.lost_frames} frames"),
+        ("tracking weak", f"{metrics.weak_frames} frames (mapped; low map coverage)"),
     ]
-    if "peak_gpu_memory_gb" in metrics:
-        rows.append(("peak GPU memory", f"{metrics['peak_gpu_memory_gb']:.2f} GB"))
+    if metrics.peak_gpu_memory_gb is not None:
+        rows.append(("peak GPU memory", f"{metrics.peak_gpu_memory_gb:.2f} GB"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
 
 
-def files_and_next_steps(folder: Path) -> str:
+def files_and_next_steps(folder: RunFolder) -> str:
     """The end of a run's output: every file in its run folder, then the commands that take it further."""
-    files = sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+    root = folder.path
+    files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file() and not p.name.startswith("."))
     shown = [str(p) for p in files if len(p.parts) == 1]
     shown += sorted(
         {f"{p.parts[0]}/ ({sum(q.parts[0] == p.parts[0] for q in files)} files)" for p in files if len(p.parts) > 1}
     )
-    lines = [f"outputs: {folder}/", *(f"  {name}" for name in shown), "next:", f"  gsplatam view {folder}"]
-    if (folder / "groundtruth.txt").is_file():
-        lines.append(f"  evo_ape tum {folder}/groundtruth.txt {folder}/trajectory.txt -a   # the same ATE, by evo")
-    lines.append(f"  gsplatam export {folder} --to nerfstudio|splat|ply|mesh|pointcloud")
-    if (folder / "recording" / "rgb.txt").is_file():
-        lines.append(f"  gsplatam run {folder}/recording   # the live session again, offline")
+    lines = [f"outputs: {root}/", *(f"  {name}" for name in shown), "next:", f"  gsplatam view {root}"]
+    if folder.groundtruth.is_file():
+        lines.append(f"  evo_ape tum {folder.groundtruth} {folder.trajectory} -a   # the same ATE, by evo")
+    lines.append(f"  gsplatam export {root} --to nerfstudio|splat|ply|mesh|pointcloud")
+    if folder.recorded():
+        lines.append(f"  gsplatam run {folder.recording}   # the live session again, offline")
     return "\n".join(lines)
 
 
-def run_summary(frames: int, gaussians: int, ate_cm: float | None, psnr_db: float | None) -> str:
+def live_outcome(folder: RunFolder, metrics: RunMetrics) -> str:
+    """What a live session printed at its end: its size, then its files and what to do next."""
+    return f"{metrics.frames} frames, {metrics.gaussians:,} Gaussians\n{files_and_next_steps(folder)}"
+
+
+def run_summary(metrics: RunMetrics) -> str:
     """One markdown line for the viewer at the end of a run."""
-    parts = [f"**run finished**: {frames} frames, {gaussians:,} Gaussians"]
-    if ate_cm is not None:
-        parts.append(f"ATE RMSE {ate_cm:.2f} cm")
-    if psnr_db is not None:
-        parts.append(f"PSNR {psnr_db:.1f} dB")
+    parts = [f"**run finished**: {metrics.frames} frames, {metrics.gaussians:,} Gaussians"]
+    if metrics.ate is not None:
+        parts.append(f"ATE RMSE {metrics.ate.rmse_cm:.2f} cm")
+    if metrics.render is not None:
+        parts.append(f"PSNR {metrics.render.psnr_db:.1f} dB")
     return ", ".join(parts)

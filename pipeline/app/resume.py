@@ -7,14 +7,14 @@ cannot be replayed). Anything else is refused with one line, the folder left as 
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.slam.state import Checkpoint
 
-# run_info keys a resume must match, and how a mismatch reads
+# what a resume must match of the run that wrote the checkpoint, and how a mismatch reads
 SAME_RUN = {
     "source": "dataset",
     "format": "dataset layout",
@@ -26,42 +26,36 @@ SAME_RUN = {
 }
 
 
-def read_resumable(folder: Path, expected: dict[str, Any], frames: int) -> Checkpoint:
-    """The checkpoint in `folder` if it continues the run `expected` describes (`describe_run`)
-    over a dataset of `frames` frames; UserError naming what differs otherwise. A run that has
-    all its frames resumes only to finish its evaluation."""
-    run_folder = RunFolder(folder)
-    checkpoint, saved = run_folder.read_checkpoint()
-    if saved.get("live"):
-        raise UserError(f"{folder} is a live run ({saved.get('source')}): --resume continues dataset runs only")
+def read_resumable(folder: RunFolder, expected: RunDescription, frames: int) -> Checkpoint:
+    """The checkpoint in `folder` if it continues the run `expected` describes over a dataset
+    of `frames` frames; UserError naming what differs otherwise. A run that has all its frames
+    resumes only to finish its evaluation."""
+    checkpoint, saved = folder.read_checkpoint()
+    if saved.live:
+        raise UserError(f"{folder.path} is a live run ({saved.source}): --resume continues dataset runs only")
     for key, what in SAME_RUN.items():
-        if key in saved and saved[key] != expected.get(key):
-            raise UserError(
-                f"{folder} was run with {what} {_shown(saved[key])}, this run has {_shown(expected.get(key))}"
-            )
-    width, height = expected["size"]
+        recorded, wanted = getattr(saved, key), getattr(expected, key)
+        if recorded is not None and recorded != wanted:
+            raise UserError(f"{folder.path} was run with {what} {_shown(recorded)}, this run has {_shown(wanted)}")
+    assert expected.size is not None, "a dataset run knows its frame size"
+    width, height = expected.size
     for keyframe in checkpoint.keyframes:
         if tuple(keyframe.color_u8.shape[:2]) != (height, width):
             shape = keyframe.color_u8.shape
             raise UserError(
-                f"{folder} holds keyframes of {shape[1]}x{shape[0]}, this run's frames are {width}x{height}"
+                f"{folder.path} holds keyframes of {shape[1]}x{shape[0]}, this run's frames are {width}x{height}"
             )
     if checkpoint.frames_done > frames:
-        raise UserError(f"{folder} holds {checkpoint.frames_done} frames, this dataset (as sliced) has only {frames}")
-    if checkpoint.frames_done == frames and evaluation_complete(run_folder.read_metrics()):
-        raise UserError(f"{folder} already holds all {frames} frames and their metrics")
+        raise UserError(
+            f"{folder.path} holds {checkpoint.frames_done} frames, this dataset (as sliced) has only {frames}"
+        )
+    metrics = folder.read_metrics()
+    if checkpoint.frames_done == frames and metrics is not None and metrics.evaluation_complete:
+        raise UserError(f"{folder.path} already holds all {frames} frames and their metrics")
     return checkpoint
 
 
-def evaluation_complete(metrics: dict[str, Any] | None) -> bool:
-    """Whether metrics.json holds a complete evaluation (metrics of gsplatam 0.2 without the
-    `evaluation` entry: whether they hold render metrics)."""
-    if metrics is None:
-        return False
-    return metrics.get("evaluation", "complete" if metrics.get("render") else "skipped") == "complete"
-
-
 def _shown(value: Any) -> str:
-    if isinstance(value, list) and len(value) == 2:
+    if isinstance(value, tuple) and len(value) == 2:
         return f"{value[0]}x{value[1]}"
     return repr(value)

@@ -1,51 +1,48 @@
-"""One SLAM session, built the same way for `run` and `serve`: device, run folder, SLAM,
-its frame-boundary observers (periodic save, viewer), the graph, and its execution (with the
-profiler when asked)."""
+"""One SLAM session, built the same way for `run` and `serve` from a finished config and its
+device (setup.py) and a claimed run folder: SLAM, its frame-boundary observers (periodic save,
+viewer), the result sink, the graph, its execution (with the profiler when asked) and its metrics."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
 from pipeline.app.profiling import all_threads_config, summarise
-from pipeline.config import Config, switched_on, with_dataset_defaults
-from pipeline.devices import describe, resolve_device
-from pipeline.io.outputs.atomic import atomic_write_text
-from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
-from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
-from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.ui.display import LiveFeed
-from pipeline.io.ui.viewer_feed import attach_viewer, release_on_stop
-from pipeline.render import make_renderer, resolve_backend
+from pipeline.app.report import timing_summary, versions
+from pipeline.app.setup import Setup
+from pipeline.config import Config, switched_on
+from pipeline.devices import describe
+from pipeline.outputs.frame_row import FrameRow
+from pipeline.outputs.intrinsics import IntrinsicsRecorder
+from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
+from pipeline.render import make_renderer
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.kernel_time import KernelSampler
 from pipeline.slam.process.schedule import ProcessSplaTAM
+from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint
 from pipeline.slam.view import SteppedSlam
 from pipeline.source import Source
-from pipeline.stages.sinks import ResultSink
+from pipeline.stages.frame_log import FrameLog
+from pipeline.stages.sinks import ResultConsumer, ResultSink
 from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
 from pipeline.stages.upload import make_uploader
 from pipeline.stages.worker import ThreadedStage
+from pipeline.ui.display import LiveFeed
+from pipeline.ui.progress import ProgressBar
+from pipeline.ui.viewer_feed import attach_viewer, release_on_stop
 
 log = logging.getLogger("gsplatam")
-
-
-def complete_config(config: Config, device: torch.device, dataset_format: str) -> Config:
-    """The config as the run uses it: the render backend resolved for `device` and the values
-    SplaTAM tunes per dataset family filled in (written into the run folder as such)."""
-    config = with_dataset_defaults(config, dataset_format)
-    return replace(config, render=replace(config.render, backend=resolve_backend(config.render, device)))
 
 
 @dataclass
@@ -56,11 +53,17 @@ class Session:
     slam: SteppedSlam
     source: Source
     sink: ResultSink
+    bar: ProgressBar
     intrinsics: IntrinsicsRecorder
     saver: PeriodicSave
     viewer: LiveFeed | None = None  # viser, Open3D or rerun
     services: list[Service] = field(default_factory=list)
     kernels: KernelSampler | None = None  # the GPU's kernel busy fraction over a window (CUDA)
+
+    @property
+    def log(self) -> FrameLog:
+        """The results so far, their arrival times and counts."""
+        return self.sink.log
 
     def linger(self, summary: str) -> None:
         """After the run: the viewer, if any, keeps the final map up for its watchers (`summary`
@@ -75,26 +78,47 @@ class Session:
             self.viewer.close()
         self.slam.close()
 
+    def metrics(self, report: RuntimeReport | None, ate: AteRecord | None) -> RunMetrics:
+        """What every metrics.json holds, a dataset's or a live session's: sizes, counts, device,
+        the source's counters, frame ages, timing (`report`: None when the run failed) and the ATE."""
+        config, slam, frames, device = self.config, self.slam, self.log, self.device
+        peak = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
+        return RunMetrics(
+            source=self.source.name,
+            live=self.source.live,
+            preset=config.preset,
+            schedule=config.slam.schedule,
+            mapping_process=slam.mapping_summary(),
+            frames=slam.frames_done,
+            frames_this_run=len(frames.results),
+            gaussians=len(slam.gaussians) if slam.gaussians is not None else 0,
+            lost_frames=frames.lost_frames,
+            weak_frames=frames.weak_frames,
+            relocalised_frames=frames.relocalised_frames,
+            unmapped_frames=frames.unmapped_frames,
+            device=describe(device, config),
+            versions=versions(),
+            peak_gpu_memory_gb=peak,
+            counters=dict(vars(self.source.counters)),
+            frame_age_ms=FrameAges.of(frames.results),
+            runtime=report.summary() if report is not None else {},
+            time=timing_summary(frames, report) if report is not None else None,
+            ate=ate,
+        )
+
     @property
     def observers(self) -> list[FrameObserver]:
         """Run after every frame in the SLAM thread; the viewer's last (it may pause SLAM)."""
         return [o for o in (self.intrinsics, self.saver, self.kernels, self.viewer) if o is not None]
 
 
-def describe_run(source: str, live: bool, config: Config, **details: Any) -> dict[str, Any]:
-    """What a checkpoint records of its run, so that a resume can tell it continues the same one:
-    the source's name, whether it is live, the kind of map, and `details` (JSON-able: sizes, slicing)."""
-    gaussians = {"gaussians": config.gaussians.kind, "isotropic": config.gaussians.isotropic}
-    return {"source": source, "live": live, **gaussians, **details}
-
-
 def open_session(
-    config: Config,
+    setup: Setup,
     source: Source,
-    folder: Path,
+    folder: RunFolder,
     *,
     progress: bool,
-    run_info: dict[str, Any],
+    run: RunDescription,
     save_every_s: float,
     stop_on_failure: bool = False,
     resume: Checkpoint | None = None,
@@ -102,14 +126,13 @@ def open_session(
     total: int | None = None,
 ) -> Session:
     """Write the config into `folder` and build SLAM (continuing from `resume`, whose frames'
-    stamps are `earlier`), the result sink (a bar over `total` frames), the periodic save (every
-    `save_every_s`; on a write failure it stops the run if `stop_on_failure`, else reports it)
-    and the viewer (when the config enables it). `config` must be complete (`complete_config`);
-    `run_info` (`describe_run`) goes into every checkpoint."""
-    device = resolve_device(config.run.device)
-    run_folder = RunFolder(folder, run_info)
-    run_folder.write_config(config)
-    log.info("device: %s; run folder: %s", describe(device, config), run_folder.path)
+    stamps are `earlier`), the result sink (frames.csv and a bar over `total` frames), the
+    periodic save (every `save_every_s`; on a write failure it stops the run if
+    `stop_on_failure`, else reports it) and the viewer (when the config enables it). `run`
+    goes into every checkpoint."""
+    config, device = setup.config, setup.device
+    folder.write_config(config)
+    log.info("device: %s; run folder: %s", describe(device, config), folder.path)
     slam = _slam_of(config, source, device)
     initial = 0
     if resume is not None:
@@ -117,17 +140,16 @@ def open_session(
         initial = resume.frames_done
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    viewer = attach_viewer(
-        config, slam.renderer, device, run_folder, f"gsplatam: {source.name}"
-    )  # first: it may be missing
-    saver = PeriodicSave(run_folder, save_every_s, earlier, stop_on_failure)
-    sink = ResultSink(run_folder.append_frames, total, initial, progress, on_write_error=saver.report_failure)
+    viewer = attach_viewer(config, slam.renderer, device, folder, f"gsplatam: {source.name}")  # first: may be missing
+    saver = PeriodicSave(folder, run, save_every_s, earlier, stop_on_failure)
+    frames = FrameLog()
+    bar = ProgressBar(frames, total, initial, progress)
+    sink = ResultSink(frames, [_frame_rows(folder, saver), bar])
     services: list[Service] = [partial(release_on_stop, viewer)] if viewer else []
-    intrinsics = IntrinsicsRecorder(run_folder.intrinsics)
-    kernels = (
-        KernelSampler(slam.sample_kernels) if switched_on(config.run.kernel_sample, device.type == "cuda") else None
-    )
-    return Session(config, device, run_folder, slam, source, sink, intrinsics, saver, viewer, services, kernels)
+    intrinsics = IntrinsicsRecorder(folder.intrinsics)
+    sampled = switched_on(config.run.kernel_sample, device.type == "cuda")
+    kernels = KernelSampler(slam.sample_kernels) if sampled else None
+    return Session(config, device, folder, slam, source, sink, bar, intrinsics, saver, viewer, services, kernels)
 
 
 def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSlam:
@@ -136,6 +158,19 @@ def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSla
     if config.slam.schedule == "process":
         return ProcessSplaTAM(config, renderer, device, source.live)
     return SplaTAM(config, renderer, device)
+
+
+def _frame_rows(folder: RunFolder, saver: PeriodicSave) -> ResultConsumer:
+    """Each result's row into frames.csv; a row that cannot be written is reported as a failed
+    save (a dataset run then stops, a live daemon goes on)."""
+
+    def write(result: FrameResult) -> None:
+        try:
+            folder.append_frame(FrameRow.of(result))
+        except OSError as exc:
+            saver.report_failure(f"the row of frame {result.index} in frames.csv", exc)
+
+    return write
 
 
 def slam_stages(session: Session) -> list[ThreadedStage]:
@@ -183,7 +218,7 @@ def execute_session(
             report.kernel_sample = None if sample is None else asdict(sample)
         return report
     finally:
-        session.sink.close()
+        session.bar.close()
         session.saver.close()
         session.folder.close()
         if session.viewer is not None:
@@ -191,24 +226,17 @@ def execute_session(
 
 
 def _profiled(graph: Graph, session: Session) -> RuntimeReport:
-    """Run under the torch profiler; write trace.json and profile.txt into the run folder."""
+    """Run under the torch profiler; write its trace and profile.txt into the run folder."""
     cuda = session.device.type == "cuda"
-    folder = session.folder.path
+    folder = session.folder
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities, experimental_config=all_threads_config()) as prof:
         report = execute(graph, session.config.run.loader)
-    partial_trace = folder / ".trace.json.tmp"  # the profiler writes the file itself: renamed when complete
-    try:
-        prof.export_chrome_trace(str(partial_trace))
-        os.replace(partial_trace, folder / "trace.json")
-    except BaseException:
-        with contextlib.suppress(OSError):
-            partial_trace.unlink()
-        raise
+    folder.write_trace(lambda path: prof.export_chrome_trace(str(path)))
     summary, table = summarise(prof, cuda, report.wall_s)
     report.profile = summary
-    atomic_write_text(folder / "profile.txt", _profile_text(summary, table, report.wall_s, cuda))
-    log.info("profile: %s and %s", folder / "trace.json", folder / "profile.txt")
+    folder.write_profile(_profile_text(summary, table, report.wall_s, cuda))
+    log.info("profile: %s and %s", folder.trace, folder.profile)
     return report
 
 

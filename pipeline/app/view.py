@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.outputs.ply import read_ply
-from pipeline.io.trajectory import read_tum_trajectory
-from pipeline.io.ui.display import follow_pose
-from pipeline.io.ui.viewer_feed import map_view
+from pipeline.files.trajectory import read_tum_trajectory
+from pipeline.outputs.ply import read_ply
+from pipeline.outputs.run_folder import RunFolder
+from pipeline.ui.display import follow_pose
+from pipeline.ui.viewer_feed import map_view
 
 OVERVIEW_BACK_M = 1.5  # a saved map is first seen from this far behind the first camera
 OVERVIEW_UP_M = 0.5
@@ -19,16 +20,19 @@ OVERVIEW_UP_M = 0.5
 
 def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
     """Show the map (and the trajectory beside a run folder's map) until Ctrl-C or the window closes."""
-    ply = path / "map.ply" if path.is_dir() else path
+    folder = RunFolder(path) if path.is_dir() else None
+    ply = folder.map if folder is not None else path
     if not ply.is_file():
         raise UserError(f"no map to show: {ply} does not exist")
     gaussians = read_ply(ply)
-    trajectory = path / "trajectory.txt"
-    poses = read_tum_trajectory(trajectory)[1] if path.is_dir() and trajectory.is_file() else np.zeros((0, 4, 4))
+    trajectory = folder.trajectory if folder is not None else None
+    poses = (
+        read_tum_trajectory(trajectory)[1] if trajectory is not None and trajectory.is_file() else np.zeros((0, 4, 4))
+    )
     start = follow_pose(poses[0], OVERVIEW_BACK_M, OVERVIEW_UP_M) if len(poses) else None
     title = f"gsplatam: {ply}"
     if open3d:
-        from pipeline.io.ui.open3d_viewer import Open3DViewer
+        from pipeline.ui.open3d_viewer import Open3DViewer
 
         window = Open3DViewer(title, live=False)
         window.show_map(map_view(gaussians))
@@ -43,7 +47,7 @@ def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
         finally:
             window.close()
         return
-    from pipeline.io.ui.viewer import Viewer
+    from pipeline.ui.viewer import Viewer
 
     viewer = Viewer(host, port, title, live=False)
     viewer.show_map(map_view(gaussians))

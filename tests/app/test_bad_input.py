@@ -17,7 +17,7 @@ import torch
 from conftest import ROOT
 
 from pipeline.app.cli import main
-from pipeline.io.outputs.ply import write_ply
+from pipeline.outputs.ply import write_ply
 from pipeline.render.types import Gaussians
 
 
@@ -126,13 +126,14 @@ def test_a_truncated_or_malformed_ply_is_named_by_view(damage, message: str, tmp
 
 
 def test_a_preset_beside_a_config_naming_another_says_which_wins(tmp_path: Path, caplog) -> None:
-    from pipeline.app.cli import _config_from, build_parser
+    from pipeline.app.cli import build_parser
+    from pipeline.app.commands.options import requested_config
 
     config_file = tmp_path / "c.toml"
     config_file.write_text('preset = "small"\n')
     args = build_parser().parse_args(["run", "--preset", "tiny", "--config", str(config_file)])
     with caplog.at_level("WARNING", "gsplatam"):
-        config = _config_from(args)
+        config, _ = requested_config(args, live=False)
     assert config.preset == "small"
     assert f"--preset tiny is overridden by {config_file}, which names preset 'small'" in caplog.text
 

@@ -13,14 +13,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 from conftest import ROOT
 from live_helpers import free_port, read_status, wait_for
 
 from pipeline.app.bench import cells_of, report_of, run_cell
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.live.fake_record3d import FakePhone
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.live.fake_record3d import FakePhone
 
 ray = pytest.importorskip("ray")
 
@@ -72,9 +73,9 @@ def test_a_bench_through_ray_gives_the_rows_of_the_sequential_run(cluster: str, 
 
 def test_a_cell_that_fails_is_a_row_with_its_error(tmp_path: Path) -> None:
     (cell,) = cells_of([str(tmp_path / "absent")], ["tiny"], ["default"])
-    row = run_cell(cell, [], tmp_path, progress=False, profile=False)
+    row = run_cell(cell, [], tmp_path, torch.device("cpu"), progress=False, profile=False)
     assert row["error"] == f"UserError: dataset folder not found: {tmp_path / 'absent'}"
-    report = report_of([row], [], False, 1.0, None)
+    report = report_of([row], [], False, 1.0, torch.device("cpu"), None)
     assert report["rows"][0]["total_ms_ratio"] is None
 
 

@@ -22,12 +22,14 @@ from live_helpers import wait_for
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
-from pipeline.io.datasets.synthetic_writer import write_synthetic
-from pipeline.io.outputs.checkpoint import write_checkpoint
-from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.io.trajectory import read_tum_trajectory
+from pipeline.files.trajectory import read_tum_trajectory
+from pipeline.outputs.checkpoint import write_checkpoint
+from pipeline.outputs.frame_row import FrameRow
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
+from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 QUICK = [
     "--preset",
@@ -86,14 +88,14 @@ def test_an_unreadable_late_frame_keeps_the_frames_before_it_and_resume_continue
 def test_a_full_disk_mid_run_stops_it_and_says_so(
     replica_seq: Path, tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = RunFolder.append_frames
+    real = RunFolder.append_frame
 
-    def full_from_the_second_row(self: RunFolder, rows: list[dict[str, Any]]) -> None:
-        if rows[0]["index"] >= 1:
+    def full_from_the_second_row(self: RunFolder, row: FrameRow) -> None:
+        if row.index >= 1:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        real(self, rows)
+        real(self, row)
 
-    monkeypatch.setattr(RunFolder, "append_frames", full_from_the_second_row)
+    monkeypatch.setattr(RunFolder, "append_frame", full_from_the_second_row)
     out = tmp_path / "out"
     assert main(["run", str(replica_seq), "--output", str(out), "--name", "full", *QUICK]) == 2
     assert "cannot write the row of frame 1 in frames.csv" in _last_error(capsys)
@@ -112,7 +114,7 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
     replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
 ) -> None:
     import pipeline.app.run as run_module
-    from pipeline.io.outputs.periodic_save import PeriodicSave
+    from pipeline.outputs.periodic_save import PeriodicSave
 
     def signal_first(target: Any, name: str, sig: int) -> None:
         original = getattr(target, name)
@@ -180,7 +182,7 @@ def _resumable_folder(tmp_path: Path, dataset: Path, run_info: dict[str, Any], k
     keyframe = Keyframe(0, torch.zeros(height, width, 3, dtype=torch.uint8), torch.ones(height, width), torch.eye(4))
     gaussians = Gaussians(torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n, 1), torch.zeros(n), torch.rand(n, 3))
     checkpoint = make_checkpoint(gaussians, [keyframe], torch.eye(4).repeat(2, 1, 1))
-    write_checkpoint(folder / "checkpoint.safetensors", checkpoint, run_info)
+    write_checkpoint(folder / "checkpoint.safetensors", checkpoint, RunDescription.from_json(run_info))
     return folder
 
 
@@ -231,7 +233,7 @@ def test_resume_refuses_another_run_touching_nothing(
 def test_a_resumable_folder_of_the_same_run_passes_the_checks(replica_seq: Path, tmp_path: Path) -> None:
     from pipeline.app.resume import read_resumable
 
-    folder = _resumable_folder(tmp_path, replica_seq, SAME, (64, 48))
-    assert read_resumable(folder, {**SAME}, frames=6).frames_done == 2
-    (folder / "metrics.json").write_text(json.dumps({"evaluation": "complete"}))
-    assert read_resumable(folder, SAME, frames=3).frames_done == 2
+    folder = RunFolder(_resumable_folder(tmp_path, replica_seq, SAME, (64, 48)))
+    assert read_resumable(folder, RunDescription.from_json(SAME), frames=6).frames_done == 2
+    folder.metrics.write_text(json.dumps({"evaluation": "complete"}))
+    assert read_resumable(folder, RunDescription.from_json(SAME), frames=3).frames_done == 2

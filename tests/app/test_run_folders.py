@@ -11,16 +11,17 @@ import pytest
 from conftest import ROOT
 
 from pipeline.app.cli import main
-from pipeline.app.run_folders import LATEST, new_run_folder
 from pipeline.errors import UserError
-from pipeline.io.outputs.run_lock import RunFolderBusy, RunLock
+from pipeline.outputs.run_folders import LATEST, new_run_folder
+from pipeline.outputs.run_lock import RunFolderBusy, RunLock
 
 
 def test_runs_without_a_name_get_fresh_folders_and_latest_points_at_the_newest(tmp_path: Path) -> None:
-    with new_run_folder(tmp_path, "room_tiny") as first:
-        (first / "metrics.json").write_text("{}")
-    with new_run_folder(tmp_path, "room_tiny") as second:
-        pass
+    with new_run_folder(tmp_path, "room_tiny") as claimed:
+        first = claimed.path
+        claimed.metrics.write_text("{}")
+    with new_run_folder(tmp_path, "room_tiny") as claimed:
+        second = claimed.path
     assert first != second and first.name.startswith("room_tiny-") and second.name.startswith(first.name[:18])
     assert (first / "metrics.json").read_text() == "{}"  # the earlier run is untouched
     assert (tmp_path / LATEST).resolve() == second.resolve()
@@ -33,7 +34,7 @@ def test_latest_is_a_text_file_where_symlinks_fail(tmp_path: Path, monkeypatch: 
     monkeypatch.setattr(os, "symlink", no_symlinks)
     with new_run_folder(tmp_path, "room_tiny") as folder:
         pass
-    assert (tmp_path / LATEST).read_text().strip() == folder.name
+    assert (tmp_path / LATEST).read_text().strip() == folder.path.name
     assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
 
 
@@ -47,8 +48,23 @@ def test_a_named_folder_with_an_earlier_run_is_refused_unless_overwrite(tmp_path
             pass
     assert (folder / "metrics.json").read_text() == "earlier"
     with new_run_folder(tmp_path, "room_tiny", "mine", overwrite=True) as same:
-        assert same == folder
+        assert same.path == folder
         assert sorted(p.name for p in folder.iterdir()) == [".lock", "notes.txt"]  # the user's own file stays
+
+
+def test_overwrite_removes_the_recording_and_the_exports_too_and_nothing_of_the_users(tmp_path: Path) -> None:
+    folder = tmp_path / "mine"
+    written = ["metrics.json", "map.splat", "mesh.ply", "recording/rgb.txt", "recording/rgb/000000.png",
+               "recording/depth/000000.png", "nerfstudio/transforms.json", "nerfstudio/images/frame_000000.png"]  # fmt: skip
+    for name in [*written, "recording/notes.txt", "nerfstudio/depth/.frame_000001.png.x1.tmp"]:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text("earlier")
+    with pytest.raises(UserError, match=r"\(metrics.json, recording, nerfstudio, map.splat, mesh.ply\)"):
+        with new_run_folder(tmp_path, "room_tiny", "mine"):
+            pass
+    with new_run_folder(tmp_path, "room_tiny", "mine", overwrite=True):
+        left = sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+    assert left == [".lock", "recording", "recording/notes.txt"]  # the user's file, in the folder it needs
 
 
 def test_the_pointer_name_is_refused_as_a_run_name(tmp_path: Path) -> None:
@@ -71,7 +87,7 @@ def test_the_cli_refuses_to_run_into_an_earlier_run(replica_seq: Path, tmp_path:
 def _hold_lock(folder: Path) -> subprocess.Popen[str]:
     """Another process holding `folder`'s lock until its stdin closes."""
     script = (
-        "import sys; from pathlib import Path; from pipeline.io.outputs.run_lock import RunLock\n"
+        "import sys; from pathlib import Path; from pipeline.outputs.run_lock import RunLock\n"
         f"with RunLock(Path({str(folder)!r})):\n    print('locked', flush=True); sys.stdin.read()\n"
     )
     holder = subprocess.Popen(

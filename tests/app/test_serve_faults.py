@@ -11,14 +11,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 from live_helpers import free_port
 
 from pipeline.app import serve as serve_module
+from pipeline.app.setup import LIVE_LAYOUT, finish_config
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import OutputError
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.outputs.run_folder import RunFolder
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
+
+CPU = torch.device("cpu")
 
 
 @pytest.mark.slow
@@ -29,7 +33,7 @@ def test_a_full_disk_is_reported_once_slam_goes_on_and_the_last_complete_save_st
     real_write = RunFolder.write_state
 
     def full_after_the_first_save(self: RunFolder, *args: Any) -> None:
-        saves.append(len(args[1]))
+        saves.append(len(args[2]))
         if len(saves) > 1:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real_write(self, *args)
@@ -49,7 +53,7 @@ def test_a_full_disk_is_reported_once_slam_goes_on_and_the_last_complete_save_st
     source = DatasetSource(open_dataset(DatasetConfig(path=str(replica_seq))))
     with caplog.at_level(logging.INFO, "gsplatam"):
         with pytest.raises(OutputError, match=r"No space left on device; the last complete save \(1 frames\) is kept"):
-            serve_module.serve(config, source, progress=False)
+            serve_module.serve(finish_config(config, CPU, LIVE_LAYOUT, live=True), source, progress=False)
     reports = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(saves) >= 3 and len(reports) == 1  # periodic saves and the final one failed: one report
     status = readers[0]()
@@ -65,9 +69,11 @@ def test_the_bar_shows_the_daemons_counters_without_computing_the_status() -> No
     from types import SimpleNamespace
 
     from pipeline.source import SourceCounters
+    from pipeline.stages.frame_log import FrameLog
 
-    sink = SimpleNamespace(results=[object()] * 3, arrivals=[])
-    session = SimpleNamespace(source=SimpleNamespace(counters=SourceCounters(received=7)), sink=sink)
+    frames = FrameLog()
+    frames.results.extend([object()] * 3)  # type: ignore[list-item]
+    session = SimpleNamespace(source=SimpleNamespace(counters=SourceCounters(received=7)), log=frames)
     graph = SimpleNamespace(dropped=lambda: {"source": 2, "uploaded": 1})
     counters = serve_module.bar_counters(session, graph)  # type: ignore[arg-type]
     assert counters == {"received": 7, "processed": 3, "dropped": 3, "age": "-"}

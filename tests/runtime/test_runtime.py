@@ -256,26 +256,3 @@ def test_a_live_graph_starts_only_the_newest_frame_and_counts_the_rest() -> None
     ages = sorted(age for _, age, _ in starts)
     steps = sorted(step for _, _, step in starts)
     assert ages[len(ages) // 2] <= 2 * steps[len(steps) // 2]
-
-
-def test_the_progress_bar_shows_rate_map_size_lost_frames_and_the_ate_so_far() -> None:
-    import torch
-
-    from pipeline.slam.results import FrameResult
-    from pipeline.stages.sinks import ResultSink
-
-    rows: list[dict] = []
-    sink = ResultSink(rows.extend, total=5, progress=True)
-    for i in range(5):
-        c2w, truth = torch.eye(4), torch.eye(4)
-        c2w[0, 3], truth[0, 3] = 0.1 * i, 0.1 * i + (0.02 if i == 2 else 0.0)  # 2 cm off on one frame
-        seconds = {"tracking": 0.01, "densify": 0.0, "mapping": 0.01, "total": 0.02}
-        lost = "map covers only 4% of the valid pixels" if i == 3 else ""
-        sink.consume(FrameResult(i, i / 30, c2w, seconds, 100 + i, 1, 0.0, 1.0, lost, c2w_gt=truth))
-    sink.show({"received": 9, "dropped": 2})
-    postfix = sink.bar.postfix
-    sink.close()
-    assert "gaussians=104" in postfix and "lost=1" in postfix and "fps=" in postfix
-    assert "received=9" in postfix and "dropped=2" in postfix
-    assert "ate=" in postfix and 0.0 < float(postfix.split("ate=")[1].split("cm")[0]) < 2.0  # rigid alignment lowers it
-    assert len(rows) == 5

@@ -17,15 +17,16 @@ import torch
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.outputs.checkpoint import read_checkpoint
 from pipeline.metrics import view_quality
+from pipeline.outputs.checkpoint import read_checkpoint
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
 from pipeline.slam.keyframes import KeyframePose
 from pipeline.slam.process.schedule import ProcessSplaTAM
 from pipeline.slam.process.shared_map import SLOTS, MapControl, MapReader, MapWriter
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
+from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import sequential_stages
 from pipeline.stages.upload import HostUploader, host_frame_tensors
@@ -99,17 +100,17 @@ def test_process_schedule_tracks_every_frame_against_versions_never_written_mean
 
     slam.frontend.tracker = checked
     try:
-        sink = ResultSink(lambda rows: None, total=None, progress=False)
+        sink = ResultSink(FrameLog())
         stages = sequential_stages(slam, len(dataset) - 1, [])
         graph = Graph(DatasetSource(dataset), HostUploader(), stages, sink, queue_size=8)
         asyncio.run(run_graph(graph, asyncio.Event()))
         slam.finish(0)
-        assert [r.index for r in sink.results] == list(range(len(dataset)))
+        assert [r.index for r in sink.log.results] == list(range(len(dataset)))
         assert len(slam.poses) == len(dataset) and len(seen) >= len(dataset) - 1
         assert all(before == after for _, before, after in seen)
         versions = [number for number, _, _ in seen]
         assert versions == sorted(versions) and versions[0] >= 1
-        assert [r.mapped for r in sink.results] == [True] * len(dataset)
+        assert [r.mapped for r in sink.log.results] == [True] * len(dataset)
         assert sum(report.mapped for report in slam.mapping.mapped) == len(dataset)
         assert slam.mapping.newest_version() > versions[-1]  # mapping published after the last tracking
     finally:
@@ -189,7 +190,7 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
 
     def consume_then_fail(self: ResultSink, result) -> None:  # type: ignore[no-untyped-def]
         consume(self, result)
-        if len(self.results) == after:
+        if len(self.log.results) == after:
             os.kill(_mapping_process().pid, signal.SIGKILL if how == "kill" else signal.SIGSTOP)
 
     monkeypatch.setattr(ResultSink, "consume", consume_then_fail)

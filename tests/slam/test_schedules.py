@@ -19,16 +19,17 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.app.run import run_slam
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults, with_value
+from pipeline.files.trajectory import read_tum_trajectory
 from pipeline.frame import DeviceFrame
-from pipeline.io.datasets.loader import open_dataset
-from pipeline.io.datasets.source import DatasetSource
-from pipeline.io.outputs.checkpoint import read_checkpoint
-from pipeline.io.trajectory import read_tum_trajectory
 from pipeline.metrics import view_quality
+from pipeline.outputs.checkpoint import read_checkpoint
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
+from pipeline.sources.datasets.loader import open_dataset
+from pipeline.sources.datasets.source import DatasetSource
+from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import overlapped_stages, sequential_stages
 from pipeline.stages.upload import HostUploader, UploadedFrame, host_frame_tensors
@@ -53,7 +54,7 @@ def _slam(overrides: list[str]) -> SplaTAM:
 
 
 def _run_graph(slam: SplaTAM, source: DatasetSource, overlapped: bool, live: bool = False) -> ResultSink:
-    sink = ResultSink(lambda rows: None, total=None, progress=False)
+    sink = ResultSink(FrameLog())
     last = source.last_index
     stages = overlapped_stages(slam, last, [], 1, live) if overlapped else sequential_stages(slam, last, [])
     asyncio.run(run_graph(Graph(source, HostUploader(), stages, sink, queue_size=8), asyncio.Event()))
@@ -211,7 +212,7 @@ def test_overlapped_live_maps_the_newest_frame_and_passes_the_rest_on(replica_se
     results = sink.results
     assert [r.index for r in results] == list(range(len(dataset))) and len(slam.poses) == len(dataset)
     assert [r.mapped for r in results] == [True, True, False, False, False, True]
-    assert sink.unmapped_frames == 3 and results[-1].map_version == 3
+    assert sink.log.unmapped_frames == 3 and results[-1].map_version == 3
 
 
 @pytest.mark.slow
@@ -229,11 +230,11 @@ def test_stopping_an_overlapped_run_leaves_a_complete_resumable_folder(
     monkeypatch.setattr(ResultSink, "consume", consume_then_stop)
     config = load_config("tiny", overrides=FAST + ["slam.schedule=overlapped", f"dataset.path={replica_seq}"])
     config = with_value(with_value(config, "run.output", str(tmp_path)), "run.name", "r")
-    result = run_slam(config, progress=False)
-    assert result.metrics is not None and result.metrics["interrupted"]
+    result = run_slam(config, CPU, progress=False)
+    assert result.metrics is not None and result.metrics.interrupted
     folder = result.folder.path
     saved, _ = read_checkpoint(folder / "checkpoint.safetensors")
-    frames = result.metrics["frames"]
+    frames = result.metrics.frames
     assert stop_after <= frames < len(open_dataset(DatasetConfig(path=str(replica_seq))))
     assert saved.frames_done == frames == len(read_tum_trajectory(folder / "trajectory.txt")[0])
     assert len((folder / "frames.csv").read_text().splitlines()) == 1 + frames

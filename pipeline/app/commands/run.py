@@ -1,0 +1,69 @@
+"""`gsplatam run`: SLAM on a dataset (by default the generated room), or live from a camera."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from pipeline.app.commands.options import (
+    LIVE_SPECS,
+    add_config_options,
+    add_run_folder_options,
+    add_viewer_options,
+    requested_config,
+)
+from pipeline.errors import UserError
+from pipeline.sources.cameras import camera_of
+
+HELP = "SLAM on a dataset (default: a generated synthetic room)"
+log = logging.getLogger("gsplatam")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "dataset", nargs="?",
+        help=f"dataset folder, Replica or TUM layout (default: synthetic room); or live, without recording: {LIVE_SPECS}",
+    )  # fmt: skip
+    add_config_options(parser)
+    add_run_folder_options(parser, "<dataset>_<preset>-<date>-<time>")
+    parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its checkpoint")
+    parser.add_argument("--loader", choices=["pipelined", "sync"], help="asyncio pipeline (default) or a plain loop")
+    parser.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
+    add_viewer_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.dataset and camera_of(args.dataset):
+        return _live(args)
+    from pipeline.app.report import files_and_next_steps, format_table
+    from pipeline.app.run import run_slam
+    from pipeline.outputs.run_folder import RunFolder
+
+    if args.resume and args.overwrite:
+        raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
+    resume = RunFolder(Path(args.resume)) if args.resume else None
+    if resume is not None and not args.config and not resume.config.exists():
+        raise UserError(f"no {resume.config.name} in {args.resume}: is it a run folder?")
+    config, device = requested_config(args, live=False, config_file=resume.config if resume else None)
+    if not config.dataset.path:
+        log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
+    result = run_slam(config, device, resume, args.profile, progress=not args.quiet, overwrite=args.overwrite)
+    if result.metrics is not None:
+        print(format_table(result.metrics))
+        print(files_and_next_steps(result.folder))
+    return 0
+
+
+def _live(args: argparse.Namespace) -> int:
+    """`run record3d:URL`, `run nerfcapture:`: the live daemon's session, without the `serve` wording."""
+    from pipeline.app.report import live_outcome
+    from pipeline.app.serve import serve_live
+
+    config, device = requested_config(args, live=True)
+    if args.resume or args.profile or config.run.loader == "sync":
+        raise UserError("a live input takes none of --resume, --profile, --loader sync")
+    result = serve_live(args.dataset, config, device, progress=not args.quiet, overwrite=args.overwrite)
+    if result.metrics is not None:
+        print(live_outcome(result.folder, result.metrics))
+    return 0

@@ -1,1 +1,0 @@
-"""Everything that talks to the outside world: datasets, streams and files."""

@@ -1,1 +1,0 @@
-"""What a person watches: the web viewer and the status endpoint."""

@@ -1,0 +1,1 @@
+"""What a run leaves: the run folder and its records, the checkpoint, the map (PLY), periodic saves and exports."""

@@ -1,0 +1,133 @@
+"""The checkpoint file: tensors in safetensors, everything else as JSON in its header.
+
+Loading it never executes anything from the file (no pickle): a downloaded run folder cannot
+run code on `--resume`. Keyframe images are stored as they are kept (colour uint8, depth
+float32 metres), so a checkpoint of hundreds of keyframes stays a plain tensor file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save
+
+from pipeline.errors import DataError
+from pipeline.files.atomic import atomic_write_bytes
+from pipeline.outputs.run_description import RunDescription
+from pipeline.render.types import Gaussians
+from pipeline.slam.gaussian_map import PARAMETER_NAMES
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.state import BackendState, Checkpoint, FrontendState
+
+FORMAT = "gsplatam.checkpoint"
+VERSION = 1
+LEGACY_NAME = "checkpoint.pt"  # the pickle checkpoints of gsplatam 0.1, never loaded
+
+
+def write_checkpoint(path: Path, checkpoint: Checkpoint, run: RunDescription) -> None:
+    """Write `checkpoint` atomically; `run` describes the run it belongs to, so that a resume
+    can check it continues the same dataset, size and map kind."""
+    atomic_write_bytes(path, checkpoint_bytes(checkpoint, run))
+
+
+def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
+    """The checkpoint file's bytes (see `write_checkpoint`)."""
+    tracking, mapping = checkpoint.tracking, checkpoint.mapping
+    tensors = {f"gaussians.{n}": getattr(mapping.gaussians, n).contiguous() for n in PARAMETER_NAMES}
+    for i, k in enumerate(mapping.keyframes):
+        tensors.update(
+            {f"keyframes.{i}.color_u8": k.color_u8, f"keyframes.{i}.depth": k.depth, f"keyframes.{i}.c2w": k.c2w}
+        )
+    tensors["poses"] = tracking.poses
+    tensors["generator_state"] = mapping.generator_state
+    if tracking.last_prior is not None:
+        tensors["last_prior"] = tracking.last_prior
+    header = {
+        "format": FORMAT,
+        "version": VERSION,
+        "run": run.to_json(),
+        "frames_done": checkpoint.frames_done,
+        "frames_mapped": mapping.frames_seen,
+        "keyframe_indices": [k.index for k in mapping.keyframes],
+        "keyframe_positions": [k.position for k in mapping.keyframes],
+        "scene_radius": mapping.scene_radius,
+        "loss_history": tracking.loss_history,
+        "lost_frames": tracking.lost_frames,
+        "relocalised_frames": tracking.relocalised_frames,
+        "rng_state": _json_rng_state(mapping.rng_state),
+    }
+    return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
+
+
+def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
+    """-> (the checkpoint, the run it was written by). Raises DataError naming
+    the file for anything that is not a complete checkpoint of this format."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            tensors = {key: f.get_tensor(key) for key in f.keys()}
+    except FileNotFoundError:
+        raise DataError(f"no checkpoint at {path}") from None
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise DataError(f"{path} is not a readable checkpoint (truncated or corrupt?): {exc}") from None
+    try:
+        header = json.loads(meta["gsplatam"])
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')!r}")
+        if header.get("version") != VERSION:
+            raise ValueError(f"version {header.get('version')!r}, this gsplatam reads version {VERSION}")
+        return _checkpoint_of(header, tensors), RunDescription.from_json(header["run"])
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
+
+
+def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Checkpoint:
+    indices = header["keyframe_indices"]
+    positions = header.get("keyframe_positions", [-1] * len(indices))  # absent: written before they were kept
+    keyframes = [
+        Keyframe(
+            index,
+            tensors[f"keyframes.{i}.color_u8"],
+            tensors[f"keyframes.{i}.depth"],
+            tensors[f"keyframes.{i}.c2w"],
+            int(position),
+        )
+        for i, (index, position) in enumerate(zip(indices, positions, strict=True))
+    ]
+    tracking = FrontendState(
+        poses=tensors["poses"],
+        loss_history=[float(v) for v in header["loss_history"]],
+        last_prior=tensors.get("last_prior"),
+        lost_frames=[int(v) for v in header.get("lost_frames", [])],  # absent: written before they were kept
+        relocalised_frames=[int(v) for v in header.get("relocalised_frames", [])],
+    )
+    if tracking.frames_done != header["frames_done"]:
+        raise ValueError(f"{tracking.frames_done} poses for {header['frames_done']} frames")
+    mapping = BackendState(
+        gaussians=Gaussians(**{n: tensors[f"gaussians.{n}"] for n in PARAMETER_NAMES}),
+        keyframes=keyframes,
+        scene_radius=float(header["scene_radius"]),
+        rng_state=_rng_state_of(header["rng_state"]),
+        generator_state=tensors["generator_state"],
+        frames_seen=int(header.get("frames_mapped", header["frames_done"])),  # absent: mapping saw every frame
+    )
+    if not 0 <= mapping.frames_seen <= tracking.frames_done:
+        raise ValueError(f"{mapping.frames_seen} frames mapped of {tracking.frames_done}")
+    return Checkpoint(tracking, mapping)
+
+
+def _json_rng_state(state: tuple[Any, ...]) -> list[Any]:
+    """random.Random.getstate() (version, 625 ints, gauss_next) as JSON values."""
+    version, internal, gauss_next = state
+    return [version, list(internal), gauss_next]
+
+
+def _rng_state_of(value: list[Any]) -> tuple[Any, ...]:
+    version, internal, gauss_next = value
+    if not (isinstance(version, int) and all(isinstance(v, int) for v in internal)):
+        raise ValueError("malformed random state")
+    return (version, tuple(internal), gauss_next)

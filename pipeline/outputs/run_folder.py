@@ -1,0 +1,216 @@
+"""The run folder: every file a run, its profile, its recording and its exports write is named,
+written, read and removed here and nowhere else."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from pipeline.config import Config, load_config, to_toml
+from pipeline.errors import DataError, OutputError
+from pipeline.files.atomic import atomic_export, atomic_write_all, atomic_write_text, bytes_writer
+from pipeline.files.trajectory import tum_trajectory_text
+from pipeline.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
+from pipeline.outputs.exports import FORMATS
+from pipeline.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
+from pipeline.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.outputs.intrinsics import CameraIntrinsics, read_intrinsics
+from pipeline.outputs.ply import gaussian_ply_bytes, write_ply
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_lock import RunLock
+from pipeline.outputs.run_metrics import RunMetrics
+from pipeline.render.types import Gaussians
+from pipeline.slam.state import Checkpoint
+from pipeline.sources.live.recording import COLOR_LIST
+from pipeline.sources.live.recording import WRITTEN as RECORDING_FILES
+
+RESULTS = (
+    "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
+    "trace.json", "profile.txt", "intrinsics.json",
+)  # fmt: skip
+RECORDING = "recording"  # serve's live.record: the input in the TUM layout
+# The folders a run or an export fills, with what it writes into each (globs in the folder).
+FILLED_FOLDERS = {RECORDING: RECORDING_FILES, FORMATS["nerfstudio"]: NERFSTUDIO_FILES}
+
+
+class RunFolder:
+    """The files of one run in an existing folder: config, per-frame CSV, metrics, trajectories,
+    map, checkpoint, camera, profile, recording and exports. An `--overwrite` removes exactly
+    these (`remove_earlier_run`): a user's own files beside them stay."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.config = path / "config.toml"
+        self.frames_csv = path / "frames.csv"
+        self.metrics = path / "metrics.json"
+        self.trajectory = path / "trajectory.txt"  # estimated camera-to-world, TUM format
+        self.groundtruth = path / "groundtruth.txt"  # reference camera-to-world, TUM format
+        self.map = path / "map.ply"
+        self.checkpoint = path / "checkpoint.safetensors"
+        self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
+        self.trace = path / "trace.json"  # --profile: the torch profiler's Chrome trace
+        self.profile = path / "profile.txt"  # --profile: per-stage times, top kernels and host calls
+        self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
+        self._frames_file: IO[str] | None = None
+
+    @staticmethod
+    def existing(path: Path) -> RunFolder:
+        """A run folder written before (DataError when `path` holds no checkpoint)."""
+        folder = RunFolder(path)
+        if not folder.checkpoint.is_file():
+            raise DataError(f"{path} is not a run folder (no {folder.checkpoint.name})")
+        return folder
+
+    @contextlib.contextmanager
+    def claimed(self) -> Iterator[RunFolder]:
+        """This folder, locked while the caller writes it (RunFolderBusy, naming the holder,
+        while another process does). The folder must exist."""
+        with RunLock(self.path):
+            yield self
+
+    def export(self, fmt: str) -> Path:
+        """Where `gsplatam export --to fmt` writes by default."""
+        return self.path / FORMATS[fmt]
+
+    def recorded(self) -> bool:
+        """Whether the folder holds a live session's recording (a dataset `gsplatam run` reads)."""
+        return (self.recording / COLOR_LIST).is_file()
+
+    def earlier_run(self) -> list[str]:
+        """The names of what an earlier run (or an export of it) left here; [] for none."""
+        names = [*RESULTS, RECORDING, *FORMATS.values()]
+        return [name for name in dict.fromkeys(names) if (self.path / name).exists()]
+
+    def remove_earlier_run(self) -> None:
+        """Remove what an earlier run and its exports wrote (its config, `earlier_run`, the files
+        they put into their folders, temporary files left by a kill), and nothing else."""
+        for name in [self.config.name, *self.earlier_run()]:
+            path = self.path / name
+            if name in FILLED_FOLDERS:
+                _remove_filled(path, FILLED_FOLDERS[name])
+            elif path.is_file():
+                path.unlink()
+        for path in self.path.glob(".*.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+
+    def write_config(self, config: Config) -> None:
+        with _writing(self.config):
+            atomic_write_text(self.config, to_toml(config))
+
+    def read_config(self) -> Config:
+        """The run's config.toml (UserError naming it when it is missing or not a config)."""
+        return load_config(config_file=self.config)
+
+    def append_frame(self, row: FrameRow) -> None:
+        """One CSV line, flushed at once: the one file appended to rather than replaced, so a
+        kill loses no line written before it (a line cut off by a full disk is dropped by
+        `keep_frames` on resume)."""
+        if self._frames_file is None:
+            new = not self.frames_csv.exists() or self.frames_csv.stat().st_size == 0
+            self._frames_file = open(self.frames_csv, "a", newline="")
+            if new:
+                csv.writer(self._frames_file).writerow(COLUMNS)
+        csv.writer(self._frames_file).writerow(row.cells())
+        self._frames_file.flush()
+
+    def close(self) -> None:
+        frames_file, self._frames_file = self._frames_file, None
+        if frames_file is not None:
+            frames_file.close()
+
+    def keep_frames(self, frames_done: int) -> None:
+        """Drop the frames.csv lines of frames after the first `frames_done` (written after the
+        checkpoint a resume continues from) and any incomplete last line."""
+        if not self.frames_csv.exists():
+            return
+        lines = self.frames_csv.read_text(errors="replace").splitlines(keepends=True)
+        kept = [line for line in lines if line.endswith("\n") and _row_index(line) in range(frames_done)]
+        with _writing(self.frames_csv):
+            atomic_write_text(self.frames_csv, "".join([",".join(COLUMNS) + "\r\n", *kept]))
+
+    def write_state(
+        self, checkpoint: Checkpoint, run: RunDescription, timestamps: np.ndarray, reference: np.ndarray | None
+    ) -> None:
+        """Trajectory (and reference), map and checkpoint of the run `run` describes, from a
+        SLAM checkpoint on the host; `timestamps` [N] seconds and `reference` [N, 4, 4]
+        camera-to-world per pose. All are replaced, or (a write failing, e.g. on a full disk)
+        none: the last complete set stays."""
+        files = {
+            self.trajectory: tum_trajectory_text(timestamps, checkpoint.poses.double().numpy()).encode(),
+            self.map: gaussian_ply_bytes(checkpoint.gaussians),
+            self.checkpoint: checkpoint_bytes(checkpoint, run),
+        }
+        if reference is not None:
+            files[self.groundtruth] = tum_trajectory_text(timestamps, reference).encode()
+        atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
+
+    def write_map(self, gaussians: Gaussians) -> None:
+        write_ply(self.map, gaussians)
+
+    def read_checkpoint(self) -> tuple[Checkpoint, RunDescription]:
+        """-> (the checkpoint, the run it was saved by); DataError if there is none or it is
+        not one this version reads."""
+        legacy = self.path / LEGACY_NAME
+        if not self.checkpoint.exists() and legacy.exists():
+            raise DataError(
+                f"{legacy} is a checkpoint of gsplatam 0.1, a pickle, which is never loaded (unpickling can run "
+                f"code): run the sequence again to get {self.checkpoint.name}"
+            )
+        return read_checkpoint(self.checkpoint)
+
+    def read_intrinsics(self) -> CameraIntrinsics:
+        return read_intrinsics(self.intrinsics)
+
+    def read_metrics(self) -> RunMetrics | None:
+        """metrics.json as any version wrote it, or None where there is none (or it cannot be read)."""
+        try:
+            return RunMetrics.from_json(json.loads(self.metrics.read_text()))
+        except (OSError, ValueError, TypeError):
+            return None
+
+    def write_metrics(self, metrics: RunMetrics) -> None:
+        with _writing(self.metrics):
+            atomic_write_text(self.metrics, json.dumps(metrics.to_json(), indent=2, sort_keys=True) + "\n")
+
+    def write_trace(self, export: Callable[[Path], None]) -> None:
+        """The profiler's Chrome trace, which `export` writes to the path it is given."""
+        atomic_export(self.trace, export)
+
+    def write_profile(self, text: str) -> None:
+        atomic_write_text(self.profile, text)
+
+
+def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:
+    """Remove the files matching `written` (and temporary files) from `folder`, then the
+    folders left empty: a folder holding anything else stays with it."""
+    for pattern in (*written, "**/.*.tmp"):
+        for path in folder.glob(pattern):
+            if path.is_file():
+                path.unlink()
+    for path in sorted((p for p in folder.rglob("*") if p.is_dir()), reverse=True) + [folder]:
+        with contextlib.suppress(OSError):
+            path.rmdir()
+
+
+@contextlib.contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """An OSError writing `path` as the OutputError a user sees (one line, exit code 2)."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def _row_index(line: str) -> int | None:
+    """The frame index of a complete frames.csv line, None for the header or a malformed line."""
+    fields = next(csv.reader([line]), [])
+    if len(fields) != len(COLUMNS) or not fields[0].isdigit():
+        return None
+    return int(fields[0])

@@ -1,0 +1,1 @@
+"""What a person watches: the progress bar, the web and desktop viewers and the status endpoint."""

@@ -1,0 +1,108 @@
+"""The checkpoint format: typed, pickle-free, validated on reading."""
+
+from __future__ import annotations
+
+import pathlib
+import pickle
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import make_checkpoint
+
+from pipeline.app.cli import main
+from pipeline.config import load_config, to_toml, with_value
+from pipeline.errors import DataError
+from pipeline.outputs.checkpoint import read_checkpoint, write_checkpoint
+from pipeline.outputs.run_description import RunDescription
+from pipeline.render.types import Gaussians
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.state import Checkpoint
+
+
+def _checkpoint(frames: int = 3, prior: bool = True) -> Checkpoint:
+    g = torch.Generator().manual_seed(1)
+    n = 10
+    gaussians = Gaussians(torch.randn(n, 3), torch.randn(n, 4), torch.randn(n, 1), torch.randn(n), torch.rand(n, 3))
+    keyframes = [
+        Keyframe(i, torch.randint(0, 255, (4, 5, 3), dtype=torch.uint8), torch.rand(4, 5), torch.eye(4)) for i in (0, 2)
+    ]
+    import random
+
+    return make_checkpoint(
+        gaussians,
+        keyframes,
+        torch.eye(4).repeat(frames, 1, 1),
+        scene_radius=1.25,
+        loss_history=[0.1, 0.2],
+        last_prior=torch.eye(4) * 2 if prior else None,
+        rng_state=random.Random(5).getstate(),
+        generator=g,
+    )
+
+
+@pytest.mark.parametrize("prior", [True, False])
+def test_a_checkpoint_round_trips_every_field(tmp_path: Path, prior: bool) -> None:
+    saved = _checkpoint(prior=prior)
+    write_checkpoint(tmp_path / "c.safetensors", saved, RunDescription("room", size=(5, 4)))
+    loaded, run = read_checkpoint(tmp_path / "c.safetensors")
+    assert run == RunDescription("room", size=(5, 4))
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        assert torch.equal(getattr(loaded.gaussians, name), getattr(saved.gaussians, name))
+    assert [k.index for k in loaded.keyframes] == [0, 2]
+    assert all(
+        torch.equal(a.color_u8, b.color_u8) and torch.equal(a.depth, b.depth)
+        for a, b in zip(loaded.keyframes, saved.keyframes)
+    )
+    assert torch.equal(loaded.poses, saved.poses) and loaded.frames_done == 3
+    assert loaded.mapping.scene_radius == 1.25 and loaded.tracking.loss_history == [0.1, 0.2]
+    assert (loaded.tracking.last_prior is None) == (not prior)
+    if prior:
+        assert torch.equal(loaded.tracking.last_prior, saved.tracking.last_prior)
+    assert loaded.mapping.rng_state == saved.mapping.rng_state
+    assert torch.equal(loaded.mapping.generator_state, saved.mapping.generator_state)
+    assert loaded.mapping.frames_seen == 3
+    assert list(tmp_path.iterdir()) == [tmp_path / "c.safetensors"]  # no temporary file left
+
+
+@pytest.mark.parametrize("content", [b"", b"\x00" * 7, b"random bytes that are no tensor file", "truncated"])
+def test_a_broken_checkpoint_is_a_data_error_naming_the_file(tmp_path: Path, content: bytes | str) -> None:
+    path = tmp_path / "checkpoint.safetensors"
+    if content == "truncated":
+        write_checkpoint(path, _checkpoint(), RunDescription("room"))
+        path.write_bytes(path.read_bytes()[:-40])
+    else:
+        path.write_bytes(content)
+    with pytest.raises(DataError, match="checkpoint.safetensors"):
+        read_checkpoint(path)
+
+
+class _RunsCode:
+    """Unpickling this writes a file: what a crafted checkpoint would do."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):  # type: ignore[no-untyped-def]
+        return (pathlib.Path.write_text, (self.marker, "code ran"))
+
+
+def _run_folder(tmp_path: Path, dataset: Path) -> Path:
+    folder = tmp_path / "run"
+    folder.mkdir()
+    config = with_value(load_config("tiny"), "dataset.path", str(dataset))
+    (folder / "config.toml").write_text(to_toml(config))
+    return folder
+
+
+@pytest.mark.parametrize("name", ["checkpoint.safetensors", "checkpoint.pt"])
+def test_resume_never_runs_code_from_a_crafted_pickle(replica_seq: Path, tmp_path: Path, capsys, name: str) -> None:
+    folder = _run_folder(tmp_path, replica_seq)
+    marker = tmp_path / "pwned"
+    (folder / name).write_bytes(pickle.dumps({"slam": _RunsCode(marker)}))
+    code = main(["run", "--resume", str(folder), "--device", "cpu", "--quiet", "--output", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and not marker.exists()
+    assert err[-1].startswith("gsplatam: error: ") and name in err[-1] and "Traceback" not in "\n".join(err)
+    if name == "checkpoint.pt":
+        assert "never loaded" in err[-1]
