@@ -12,6 +12,7 @@ EXTRA_OF_MODULE = {
     "viser": "viewer",
     "open3d": "mesh",
     "ray": "cluster",
+    "gtsam": "loops",
 }
 
 
