@@ -31,22 +31,24 @@ def test_gaussians_move_exactly_with_their_keyframe_and_the_others_not_at_all() 
     creator = torch.randint(-1, 3, (60,), generator=gen)  # keyframes 0, 1, 2 and none (-1)
     old = torch.stack([random_pose(gen) for _ in range(3)])
     new = old.clone()
-    new[1] = random_pose(gen)  # only keyframe 1 is corrected
+    new[0], new[1] = random_pose(gen), random_pose(gen)  # keyframes 0 and 1 are corrected, 2 is not
     moved = move_map(gaussians, creator, old, new)
 
-    correction = new[1] @ torch.linalg.inv(old[1])
-    mine = creator == 1
-    assert 0 < int(mine.sum()) < 60
-    expected = gaussians.means[mine].double() @ correction[:3, :3].T + correction[:3, 3]
-    torch.testing.assert_close(moved.means[mine].double(), expected, atol=1e-5, rtol=0)
-    rotations = quat_to_rotmat(moved.quats[mine].double())
-    torch.testing.assert_close(
-        rotations, correction[:3, :3] @ quat_to_rotmat(gaussians.quats[mine].double()), atol=1e-5, rtol=0
-    )
-    torch.testing.assert_close(moved.quats[mine].norm(dim=-1), gaussians.quats[mine].norm(dim=-1))
+    for keyframe in (0, 1):
+        correction = new[keyframe] @ torch.linalg.inv(old[keyframe])
+        mine = creator == keyframe
+        assert 0 < int(mine.sum()) < 60
+        expected = gaussians.means[mine].double() @ correction[:3, :3].T + correction[:3, 3]
+        torch.testing.assert_close(moved.means[mine].double(), expected, atol=1e-5, rtol=0)
+        rotations = quat_to_rotmat(moved.quats[mine].double())
+        turned = correction[:3, :3] @ quat_to_rotmat(gaussians.quats[mine].double())
+        torch.testing.assert_close(rotations, turned, atol=1e-5, rtol=0)
+        torch.testing.assert_close(moved.quats[mine].norm(dim=-1), gaussians.quats[mine].norm(dim=-1))
 
-    assert torch.equal(moved.means[~mine], gaussians.means[~mine])
-    assert torch.equal(moved.quats[~mine], gaussians.quats[~mine])
+    still = (creator == 2) | (creator == -1)  # keyframe 2's, and those of no keyframe
+    assert int((creator == -1).sum()) > 0 and int((creator == 2).sum()) > 0
+    assert torch.equal(moved.means[still], gaussians.means[still])
+    assert torch.equal(moved.quats[still], gaussians.quats[still])
     for name in ("log_scales", "opacity_logits", "colors"):
         assert getattr(moved, name) is getattr(gaussians, name)
 
