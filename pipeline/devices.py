@@ -10,6 +10,7 @@ import torch
 
 from pipeline.config import SYNTHETIC_CPU, SYNTHETIC_GPU, Config, SyntheticConfig
 from pipeline.errors import UserError
+from pipeline.io.datasets.synthetic import closed_path_frames, path_turns
 
 DEFAULT_PRESET_CPU = "tiny"
 LIVE_MAX_WIDTH_CPU = 128  # live frames are halved to this width for CPU runs (0: full size on a GPU)
@@ -26,8 +27,10 @@ def resolve_device(name: str) -> torch.device:
 
 
 def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticConfig:
-    """Fill the sizes left at 0 for `device`."""
+    """Fill the sizes left at 0 for `device` (a closed path's frames: all of it, on any device)."""
     width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
+    if path_turns(config):
+        frames = closed_path_frames(config)
     return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)
 
 

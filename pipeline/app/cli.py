@@ -105,6 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--depth-noise", type=float, default=0.0, help="TUM only: depth noise std = k x depth^2")
     synth.add_argument("--holes", type=float, default=0.0, help="TUM only: fraction of depth pixels zeroed")
     synth.add_argument("--time-jitter", type=float, default=0.0, help="TUM only: depth/pose timestamp offsets, s")
+    synth.add_argument("--loops", type=int, default=0, help="a closed path, back at its start N times (frames: all)")
+    synth.add_argument("--trap", action="store_true", help="the room's halves twins: look-alike places, no loop")
 
     bench = command("bench", help="benchmark matrix: presets x sequences (x ablations), JSON and a table")
     bench.add_argument("sequences", nargs="*", help="dataset folders (default: the synthetic room)")
@@ -245,7 +247,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from pipeline.io.datasets.synthetic_writer import write_synthetic
 
     device = resolve_device("auto")
-    sizes = SyntheticConfig(frames=args.frames, width=args.width, height=args.height)
+    sizes = SyntheticConfig(  # a closed path's frames follow from its speed and frame rate
+        frames=args.frames,
+        width=args.width,
+        height=args.height,
+        speed=args.speed,
+        fps=args.fps,
+        loops=args.loops,
+        trap=args.trap,
+    )
     config = replace(
         synthetic_for(sizes, device),
         seed=args.seed,

@@ -57,10 +57,8 @@ class SyntheticConfig:
     depth_noise: float = 0.0  # TUM layout only: depth noise std = depth_noise x depth^2, metres
     holes: float = 0.0  # TUM layout only: fraction of depth pixels zeroed, in blobs
     time_jitter: float = 0.0  # TUM layout only: depth and pose timestamp offsets up to this, seconds
-    loops: int = 0  # a closed path round the room, travelled this many times (0: the open path); frames 0: all of it
-    trap: bool = (
-        False  # the room's second half is its first turned by 180 degrees: look-alike places that are not a loop
-    )
+    loops: int = 0  # a closed path round the room, this many times (0: the open path); frames 0: all of it
+    trap: bool = False  # the room's halves are twins (turned by 180 degrees): look-alike places, not a loop
 
 
 @dataclass(frozen=True)
