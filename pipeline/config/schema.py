@@ -136,7 +136,7 @@ class LoopConfig:
     radius_m: float = 0.5  # a candidate's camera centre lies within this of the current one (current estimates)
     max_angle_deg: float = 60.0  # and its viewing direction within this angle
     min_overlap: float = 0.3  # and this fraction of the current keyframe's pixels lands in its image (overlap samples)
-    min_similarity: float = 0.6  # and the descriptors' correlation (-1 to 1) is at least this
+    min_similarity: float = 0.5  # and the descriptors' correlation (-1 to 1) is at least this
     max_candidates: int = 3  # candidates verified per keyframe, most similar first
     verify_iters: tuple[int, ...] = (30, 10, 5)  # verification: alignment iterations per pyramid level, coarse to fine
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this

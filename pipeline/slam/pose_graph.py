@@ -67,6 +67,7 @@ class GraphSolution:
     kept: tuple[Edge, ...]  # loop edges the solution agrees with
     dropped: tuple[Edge, ...]  # loop edges it does not (residual over the limits): left out of it
     residuals: tuple[EdgeResidual, ...]  # of the kept loops, at the solution
+    graph: PoseGraph  # the graph to keep: nodes at `c2w`, the dropped loops gone
 
     @property
     def changed(self) -> bool:
@@ -148,14 +149,17 @@ def optimise(graph: PoseGraph, config: LoopConfig) -> GraphSolution:
     odometry = [edge for edge in graph.edges if not edge.loop]
     loops = [edge for edge in graph.edges if edge.closes_loop]
     dropped: list[Edge] = []
+    c2w, residuals = graph.c2w, []
     while loops:
         c2w = _solve(graph.c2w, odometry, loops, config)
         residuals = [edge_residual(c2w, edge) for edge in loops]
         if all(_within(residual, config) for residual in residuals):
-            return GraphSolution(c2w, tuple(loops), tuple(dropped), tuple(residuals))
+            break
         worst = max(range(len(loops)), key=lambda k: _excess(residuals[k], config))
         dropped.append(loops.pop(worst))
-    return GraphSolution(graph.c2w, (), tuple(dropped), ())
+        c2w, residuals = graph.c2w, []
+    kept = PoseGraph(c2w, tuple(edge for edge in graph.edges if not any(edge is gone for gone in dropped)))
+    return GraphSolution(c2w, tuple(loops), tuple(dropped), tuple(residuals), kept)
 
 
 def _solve(c2w: torch.Tensor, odometry: list[Edge], loops: list[Edge], config: LoopConfig) -> torch.Tensor:

@@ -79,7 +79,7 @@ def test_a_single_node_a_chain_and_a_loop_to_the_previous_keyframe_change_nothin
     graph = chain(estimate)
     solution = optimise(graph, CONFIG)
     assert solution.c2w is graph.c2w and not solution.changed
-    beside = with_loop(graph, loop_edge(truth, 10, 11, se3_exp(torch.full((6,), 0.05, dtype=F64))))
+    beside = with_loop(graph, loop_edge(truth, 10, 11, se3_exp(torch.full((6,), 0.005, dtype=F64))))  # mm, 0.5 deg
     assert optimise(beside, CONFIG).c2w is beside.c2w
     assert torch.equal(graph.c2w, estimate)  # nodes are the poses given, in float64
 
