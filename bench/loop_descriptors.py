@@ -30,7 +30,7 @@ from pipeline.devices import synthetic_for
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.keyframes import overlap_fractions, sample_valid_pixels
-from pipeline.slam.loop_closure import _blurred_thumbnail, _standardised, descriptor
+from pipeline.slam.loop_closure import blurred_thumbnail, descriptor, standardised
 
 MIN_BACK, RADIUS_M, MAX_ANGLE_DEG, MIN_OVERLAP = 10, 0.5, 60.0, 0.3
 VOCABULARY = 64  # ORB visual words, clustered from the sequence's own keyframes (an upper bound for ORB)
@@ -69,7 +69,7 @@ def inverse_depth_thumbnail(depth: torch.Tensor) -> torch.Tensor:
     """The mean inverse depth over each thumbnail cell's valid pixels, standardised."""
     inverse = torch.where(depth > 0, 1 / depth.clamp(min=1e-6), torch.zeros_like(depth))
     valid = (depth > 0).float()
-    return _standardised(_blurred_thumbnail(inverse) / _blurred_thumbnail(valid).clamp(min=1e-6))
+    return standardised(blurred_thumbnail(inverse) / blurred_thumbnail(valid).clamp(min=1e-6))
 
 
 def thumbnail_variant(use_intensity: bool, use_depth: bool) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

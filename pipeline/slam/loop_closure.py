@@ -152,7 +152,7 @@ class LoopTally:
         )
 
 
-def _blurred_thumbnail(image: torch.Tensor) -> torch.Tensor:
+def blurred_thumbnail(image: torch.Tensor) -> torch.Tensor:
     """[H, W] -> [THUMBNAIL] by area averaging, then a Gaussian blur of BLUR_SIGMA."""
     small = F.adaptive_avg_pool2d(image[None, None], THUMBNAIL)
     radius = math.ceil(2 * BLUR_SIGMA)
@@ -164,7 +164,7 @@ def _blurred_thumbnail(image: torch.Tensor) -> torch.Tensor:
     return small[0, 0]
 
 
-def _standardised(values: torch.Tensor) -> torch.Tensor:
+def standardised(values: torch.Tensor) -> torch.Tensor:
     """Flattened, zero mean and unit norm (zeros when constant)."""
     flat = values.reshape(-1)
     flat = flat - flat.mean()
@@ -177,7 +177,7 @@ def descriptor(color: torch.Tensor) -> torch.Tensor:
     their correlation (a change of exposure does not count). Measured against ORB words and
     against adding inverse depth on generated loops (bench/loop_descriptors.py): as good at
     ranking the views near a keyframe, and needs no vocabulary."""
-    return _standardised(_blurred_thumbnail(intensity(color)))
+    return standardised(blurred_thumbnail(intensity(color)))
 
 
 def _viewing_angles_deg(c2w: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
