@@ -240,24 +240,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from pipeline.config import SyntheticConfig
     from pipeline.devices import resolve_device, synthetic_for
     from pipeline.io.datasets.synthetic_writer import write_synthetic
 
     device = resolve_device("auto")
-    sizes = SyntheticConfig(  # a closed path's frames follow from its speed and frame rate
+    requested = SyntheticConfig(
         frames=args.frames,
         width=args.width,
         height=args.height,
-        speed=args.speed,
-        fps=args.fps,
-        loops=args.loops,
-        trap=args.trap,
-    )
-    config = replace(
-        synthetic_for(sizes, device),
         seed=args.seed,
         speed=args.speed,
         jitter=args.jitter,
@@ -266,7 +257,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
         depth_noise=args.depth_noise,
         holes=args.holes,
         time_jitter=args.time_jitter,
+        loops=args.loops,
+        trap=args.trap,
     )
+    config = synthetic_for(requested, device)  # sizes left at 0 by device (a closed path's frames: all of it)
     count = write_synthetic(Path(args.out), config, not args.quiet, device)
     print(f"wrote {count} frames ({config.width}x{config.height}, {args.layout} layout) to {args.out}")
     return 0
