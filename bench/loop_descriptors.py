@@ -30,7 +30,7 @@ from pipeline.devices import synthetic_for
 from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.keyframes import overlap_fractions, sample_valid_pixels
-from pipeline.slam.loop_closure import blurred_thumbnail, descriptor, standardised
+from pipeline.slam.loop_candidates import blurred_thumbnail, descriptor, standardised
 
 MIN_BACK, RADIUS_M, MAX_ANGLE_DEG, MIN_OVERLAP = 10, 0.5, 60.0, 0.3
 VOCABULARY = 64  # ORB visual words, clustered from the sequence's own keyframes (an upper bound for ORB)

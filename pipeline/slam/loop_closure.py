@@ -1,14 +1,10 @@
-"""Loop closure's front half: which old keyframes the current one may see again, and whether it
-does.
+"""Loop closure's front half: whether the newest keyframe sees again what an old one saw.
 
-At each new keyframe: candidates are the keyframes at least `min_keyframes_back` older whose
-cameras are near the current one by the current estimates (centre distance, viewing angle, and
-the share of the current keyframe's pixels that land in their images, `overlap_fractions`),
-ranked by the similarity of a global descriptor (a small, blurred, zero-mean thumbnail of
-intensity, compared by correlation, as PTAM's relocaliser compares small blurry images). Each is verified by dense RGB-D alignment of the current keyframe against the
-candidate's stored colour and depth (`rgbd_alignment`; the candidate plays the render, its
-silhouette 1 where its depth is valid), started from the relative pose the estimates imply and
-judged as the tracker judges itself (`SolveReport`, under the `loops.*` limits). A verified
+At each new keyframe, the candidates (`loop_candidates`: near by the current estimates, at
+least `min_keyframes_back` older, the most alike first) are each verified by dense RGB-D
+alignment of the current keyframe against the candidate's stored colour and depth
+(`rgbd_alignment`; the candidate plays the render, its silhouette 1 where its depth is valid),
+started from the relative pose the estimates imply and judged as the tracker judges itself (`SolveReport`, under the `loops.*` limits). A verified
 candidate is accepted only when a second verified candidate puts the current keyframe at the
 same place: two old views agreeing on one pose are rarely both wrong. The pose graph then keeps
 an accepted loop only if its optimum agrees with it (`pose_graph.optimise`).
@@ -16,35 +12,20 @@ an accepted loop only if its optimum agrees with it (`pose_graph.optimise`).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from enum import Enum
 
 import torch
-import torch.nn.functional as F
 
 from pipeline.config import LoopConfig, TrackingConfig
 from pipeline.geometry import invert_pose
 from pipeline.slam.align_tracker import SolveReport, level_params, prepare_rgbd, read_report
-from pipeline.slam.keyframes import Keyframe, overlap_fractions
-from pipeline.slam.pose_graph import Edge, GraphSolution, alignment_information
-from pipeline.slam.pyramid import check_pyramid_fits, intensity
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.loop_candidates import LoopCandidate, loop_candidates
+from pipeline.slam.pose_graph import Edge, GraphSolution, alignment_information, motion_size
+from pipeline.slam.pyramid import check_pyramid_fits
 from pipeline.slam.rgbd_alignment import align
-
-THUMBNAIL = (12, 16)  # rows, columns of the descriptor's thumbnails
-BLUR_SIGMA = 2.0  # thumbnail pixels: a small shift of the view changes the thumbnail little
-
-
-@dataclass(frozen=True)
-class LoopCandidate:
-    """An old keyframe near the current one, by the current estimates."""
-
-    position: int  # in the keyframes passed (the pose graph's node)
-    similarity: float  # descriptor correlation, -1 to 1
-    distance_m: float  # between the camera centres
-    angle_deg: float  # between the viewing directions
-    overlap: float  # fraction of the current keyframe's sampled pixels inside its image
 
 
 class Verdict(Enum):
@@ -109,7 +90,7 @@ class LoopDetection:
                 self.current,
                 check.verification.relative,
                 check.verification.information,
-                True,
+                loop=True,
             )
             for check in self.checks
             if check.verdict is Verdict.ACCEPTED
@@ -150,70 +131,6 @@ class LoopTally:
             rejected=self.rejected + dropped,
             dropped_by_graph=self.dropped_by_graph + dropped,
         )
-
-
-def blurred_thumbnail(image: torch.Tensor) -> torch.Tensor:
-    """[H, W] -> [THUMBNAIL] by area averaging, then a Gaussian blur of BLUR_SIGMA."""
-    small = F.adaptive_avg_pool2d(image[None, None], THUMBNAIL)
-    radius = math.ceil(2 * BLUR_SIGMA)
-    offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
-    kernel = torch.exp(-0.5 * (offsets / BLUR_SIGMA) ** 2)
-    kernel = kernel / kernel.sum()
-    small = F.conv2d(F.pad(small, [radius, radius, 0, 0], mode="replicate"), kernel.view(1, 1, 1, -1))
-    small = F.conv2d(F.pad(small, [0, 0, radius, radius], mode="replicate"), kernel.view(1, 1, -1, 1))
-    return small[0, 0]
-
-
-def standardised(values: torch.Tensor) -> torch.Tensor:
-    """Flattened, zero mean and unit norm (zeros when constant)."""
-    flat = values.reshape(-1)
-    flat = flat - flat.mean()
-    return flat / flat.norm().clamp(min=1e-12)
-
-
-def descriptor(color: torch.Tensor) -> torch.Tensor:
-    """A keyframe's global descriptor [12 x 16] from its colour [H, W, 3] in [0, 1]: the
-    intensity's blurred thumbnail, zero mean and norm 1, so that the dot product of two is
-    their correlation (a change of exposure does not count). Measured against ORB words and
-    against adding inverse depth on generated loops (bench/loop_descriptors.py): as good at
-    ranking the views near a keyframe, and needs no vocabulary."""
-    return standardised(blurred_thumbnail(intensity(color)))
-
-
-def _viewing_angles_deg(c2w: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-    """Degrees between the optical axis of `c2w` [4, 4] and those of `poses` [K, 4, 4]."""
-    cosine = (poses[:, :3, 2] * c2w[:3, 2]).sum(-1).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.arccos(cosine))
-
-
-def loop_candidates(
-    keyframes: Sequence[Keyframe],
-    descriptors: torch.Tensor,
-    intrinsics: torch.Tensor,
-    pixels: torch.Tensor,
-    config: LoopConfig,
-) -> list[LoopCandidate]:
-    """The old keyframes the newest of `keyframes` (oldest first, current estimates) may see
-    again, most similar first, at most `max_candidates`: at least `min_keyframes_back` older,
-    camera centre within `radius_m`, viewing direction within `max_angle_deg`, at least
-    `min_overlap` of the current keyframe's sampled `pixels` (flat indices into its depth) in
-    their images, descriptor similarity at least `min_similarity`. `descriptors` [K, D], one
-    per keyframe (`descriptor`)."""
-    old = len(keyframes) - config.min_keyframes_back
-    if old <= 0:
-        return []
-    current = keyframes[-1]
-    poses = torch.stack([keyframe.c2w for keyframe in keyframes[:old]]).double()
-    c2w = current.c2w.double()
-    distance = (poses[:, :3, 3] - c2w[:3, 3]).norm(dim=-1)
-    angle = _viewing_angles_deg(c2w, poses)
-    overlap = overlap_fractions(current.depth, intrinsics, current.c2w, poses.to(current.c2w), pixels).double()
-    similarity = (descriptors[:old] @ descriptors[-1]).double()
-    near = (distance <= config.radius_m) & (angle <= config.max_angle_deg) & (overlap >= config.min_overlap)
-    passing = torch.nonzero(near & (similarity >= config.min_similarity))[:, 0]
-    ranked = passing[torch.argsort(similarity[passing], descending=True)][: config.max_candidates]
-    stats = torch.stack([similarity, distance, angle, overlap]).cpu()  # one read of [4, K]
-    return [LoopCandidate(int(k), *(float(x) for x in stats[:, k])) for k in ranked.tolist()]
 
 
 def verification_limits(tracking: TrackingConfig, config: LoopConfig) -> TrackingConfig:
@@ -258,10 +175,8 @@ def implied_pose(old: Keyframe, relative: torch.Tensor) -> torch.Tensor:
 
 def agree(a: torch.Tensor, b: torch.Tensor, config: LoopConfig) -> bool:
     """Whether two camera-to-world poses [4, 4] lie within `agree_m` and `agree_deg`."""
-    difference = invert_pose(a) @ b
-    cosine = ((torch.diagonal(difference[:3, :3]).sum() - 1) / 2).clamp(-1.0, 1.0)
-    angle = math.degrees(math.acos(float(cosine)))
-    return float(difference[:3, 3].norm()) <= config.agree_m and angle <= config.agree_deg
+    difference = motion_size(invert_pose(a) @ b)
+    return difference.translation_m <= config.agree_m and difference.rotation_deg <= config.agree_deg
 
 
 def detect_loops(

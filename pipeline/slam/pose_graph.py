@@ -52,8 +52,8 @@ class PoseGraph:
 
 
 @dataclass(frozen=True)
-class EdgeResidual:
-    """How far a solution is from one edge's measurement."""
+class MotionSize:
+    """How far a rigid motion moves: its translation and its rotation angle."""
 
     translation_m: float
     rotation_deg: float
@@ -66,7 +66,7 @@ class GraphSolution:
     c2w: torch.Tensor  # [K, 4, 4] float64 corrected camera-to-world (the input when nothing changed)
     kept: tuple[Edge, ...]  # loop edges the solution agrees with
     dropped: tuple[Edge, ...]  # loop edges it does not (residual over the limits): left out of it
-    residuals: tuple[EdgeResidual, ...]  # of the kept loops, at the solution
+    residuals: tuple[MotionSize, ...]  # of the kept loops, at the solution
     graph: PoseGraph  # the graph to keep: nodes at `c2w`, the dropped loops gone
 
     @property
@@ -121,20 +121,24 @@ def fixed_information(sigma_m: float, sigma_deg: float) -> torch.Tensor:
     return torch.diag(sigmas**-2)
 
 
-def edge_residual(c2w: torch.Tensor, edge: Edge) -> EdgeResidual:
-    """The rotation and translation of inv(measured) @ (the relative pose of the solution)."""
-    error = invert_pose(edge.relative) @ invert_pose(c2w[edge.first]) @ c2w[edge.second]
-    cosine = ((torch.diagonal(error[:3, :3]).sum() - 1) / 2).clamp(-1.0, 1.0)
-    return EdgeResidual(float(error[:3, 3].norm()), float(torch.rad2deg(torch.arccos(cosine))))
+def motion_size(motion: torch.Tensor) -> MotionSize:
+    """Of a rigid motion [4, 4]."""
+    cosine = ((torch.diagonal(motion[:3, :3]).sum() - 1) / 2).clamp(-1.0, 1.0)
+    return MotionSize(float(motion[:3, 3].norm()), float(torch.rad2deg(torch.arccos(cosine))))
 
 
-def _within(residual: EdgeResidual, config: LoopConfig) -> bool:
+def edge_residual(c2w: torch.Tensor, edge: Edge) -> MotionSize:
+    """How far the solution's poses [K, 4, 4] are from an edge: inv(measured) @ their relative pose."""
+    return motion_size(invert_pose(edge.relative) @ invert_pose(c2w[edge.first]) @ c2w[edge.second])
+
+
+def _within(residual: MotionSize, config: LoopConfig) -> bool:
     return (
         residual.translation_m <= config.max_loop_residual_m and residual.rotation_deg <= config.max_loop_residual_deg
     )
 
 
-def _excess(residual: EdgeResidual, config: LoopConfig) -> float:
+def _excess(residual: MotionSize, config: LoopConfig) -> float:
     return max(
         residual.translation_m / config.max_loop_residual_m, residual.rotation_deg / config.max_loop_residual_deg
     )

@@ -23,16 +23,8 @@ from pipeline.io.datasets.loader import open_dataset
 from pipeline.io.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.align_tracker import SolveReport
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
-from pipeline.slam.loop_closure import (
-    LoopDetection,
-    LoopTally,
-    Verdict,
-    Verification,
-    descriptor,
-    detect_loops,
-    verdicts,
-    verify,
-)
+from pipeline.slam.loop_candidates import descriptor
+from pipeline.slam.loop_closure import LoopDetection, LoopTally, Verdict, Verification, detect_loops, verdicts, verify
 from pipeline.slam.pose_graph import edge_residual, empty_graph, fixed_information, optimise, with_keyframe, with_loop
 
 F64 = torch.float64
