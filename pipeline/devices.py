@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import os
 import socket
-from dataclasses import replace
 
 import torch
 
-from pipeline.config import SYNTHETIC_CPU, SYNTHETIC_GPU, Config, SyntheticConfig
+from pipeline.config import Config
 from pipeline.errors import UserError
 
 DEFAULT_PRESET_CPU = "tiny"
@@ -23,12 +22,6 @@ def resolve_device(name: str) -> torch.device:
             raise UserError("run.device=cuda but no CUDA device is available")
         return torch.device("cuda", torch.cuda.current_device())
     return torch.device(name)
-
-
-def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticConfig:
-    """Fill the sizes left at 0 for `device`."""
-    width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
-    return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)
 
 
 def live_max_width(device: torch.device) -> int:

@@ -13,6 +13,7 @@ EXTRA_OF_MODULE = {
     "open3d": "mesh",
     "ray": "cluster",
     "rerun": "rerun",
+    "gtsam": "loops",
 }
 
 

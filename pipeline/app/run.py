@@ -18,7 +18,6 @@ from pipeline.app.session import Session, execute_session, open_session
 from pipeline.app.setup import Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.devices import synthetic_for
 from pipeline.errors import OutputError, StageFailure, UserError
 from pipeline.frame import DeviceFrame
 from pipeline.metrics import view_quality
@@ -32,6 +31,7 @@ from pipeline.slam.state import Checkpoint
 from pipeline.sources.datasets.base import Dataset
 from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.source import DatasetSource
+from pipeline.sources.datasets.synthetic import synthetic_for
 from pipeline.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.stages.upload import make_uploader
 

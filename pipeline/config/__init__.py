@@ -25,6 +25,7 @@ from pipeline.config.schema import (
     KeyframeConfig,
     LiveConfig,
     LoaderKind,
+    LoopConfig,
     LossConfig,
     MapOptimizerKind,
     MappingConfig,
@@ -45,7 +46,7 @@ from pipeline.config.schema import (
 
 __all__ = [
     "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
-    "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind",
+    "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LoopConfig",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
     "ViewerKind", "switched_on",

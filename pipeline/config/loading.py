@@ -209,6 +209,22 @@ def validate(config: Config) -> None:
         (config.live.max_keyframes >= 2 and config.live.max_gaussians >= 1, "live bounds must be positive"),
         (config.keyframes.every >= 1, "keyframes.every must be >= 1"),
         (config.keyframes.overlap_samples >= 1, "keyframes.overlap_samples must be >= 1"),
+        (synthetic.loops >= 0, "synthetic.loops must be >= 0"),
+        (config.loops.min_keyframes_back >= 2, "loops.min_keyframes_back must be >= 2"),
+        (config.loops.max_candidates >= 1, "loops.max_candidates must be >= 1"),
+        (
+            1 <= len(config.loops.verify_iters) <= 6 and min(config.loops.verify_iters, default=0) >= 1,
+            "loops.verify_iters takes 1 to 6 iteration counts (one per pyramid level, coarse to fine), each >= 1",
+        ),
+        (
+            min(config.loops.information_scale, config.loops.odometry_sigma_m, config.loops.odometry_sigma_deg) > 0,
+            "loops.information_scale, odometry_sigma_m and odometry_sigma_deg must be > 0",
+        ),
+        (
+            min(config.loops.max_loop_residual_m, config.loops.max_loop_residual_deg, config.loops.loop_kernel_width)
+            > 0,
+            "loops.max_loop_residual_m, max_loop_residual_deg and loop_kernel_width must be > 0",
+        ),
         (config.dataset.stride >= 1, "dataset.stride must be >= 1"),
         (config.dataset.start >= 0, "dataset.start must be >= 0"),
         (len(config.dataset.intrinsics) in (0, 4), "dataset.intrinsics takes fx,fy,cx,cy"),

@@ -57,6 +57,8 @@ class SyntheticConfig:
     depth_noise: float = 0.0  # TUM layout only: depth noise std = depth_noise x depth^2, metres
     holes: float = 0.0  # TUM layout only: fraction of depth pixels zeroed, in blobs
     time_jitter: float = 0.0  # TUM layout only: depth and pose timestamp offsets up to this, seconds
+    loops: int = 0  # a closed path round the room, this many times (0: the open path); frames 0: all of it
+    trap: bool = False  # the room's halves are twins (turned by 180 degrees): look-alike places, not a loop
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,35 @@ class KeyframeConfig:
     every: int = 5  # every Nth frame becomes a keyframe (the last frame too)
     overlap_samples: int = 1600  # pixels sampled to measure a keyframe's overlap with the current frame
     max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure: a keyframe that sees again what an old one saw, verified by dense alignment,
+    and the keyframe pose graph optimised (the 'loops' extra: GTSAM)."""
+
+    enabled: bool = False  # close loops (off until the mapping side calls it)
+    min_keyframes_back: int = 10  # a candidate is at least this many keyframes older than the current one
+    radius_m: float = 0.5  # a candidate's camera centre lies within this of the current one (current estimates)
+    max_angle_deg: float = 60.0  # and its viewing direction within this angle
+    min_overlap: float = 0.3  # and this fraction of the current keyframe's pixels lands in its image (overlap samples)
+    min_similarity: float = 0.5  # and the descriptors' correlation (-1 to 1) is at least this
+    max_candidates: int = 3  # candidates verified per keyframe, most similar first
+    verify_iters: tuple[int, ...] = (30, 10, 5)  # verification: alignment iterations per pyramid level, coarse to fine
+    min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this
+    min_inliers: float = 0.7  # verified: of the pixels on the candidate's valid depth, this fraction within the gate
+    max_residual_m: float = 0.015  # verified: RMS point-to-plane residual at most this
+    max_intensity_rms: float = 0.1  # verified: RMS intensity residual (less its mean) at most this
+    min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
+    agree_m: float = 0.05  # accepted: two verified candidates place the current keyframe within this of each other
+    agree_deg: float = 2.0  # and within this angle
+    information_scale: float = 0.01  # an alignment's normal equations x this: an edge's information (pixels correlate)
+    odometry_sigma_m: float = 0.01  # odometry edges of keyframes tracked by adam (no normal equations): std, metres
+    odometry_sigma_deg: float = 0.5  # and of their rotation, degrees
+    loop_kernel_width: float = 3.0  # Cauchy kernel on loop edges, in standard deviations
+    max_loop_residual_m: float = 0.05  # a loop edge the optimised graph misses by more is dropped
+    max_loop_residual_deg: float = 3.0  # likewise in rotation
+    max_iterations: int = 100  # Levenberg-Marquardt iterations of the pose graph at most
 
 
 @dataclass(frozen=True)
@@ -233,6 +264,7 @@ class Config:
     mapping: MappingConfig = field(default_factory=MappingConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     gaussians: GaussianConfig = field(default_factory=GaussianConfig)
     render: RenderConfig = field(default_factory=RenderConfig)

@@ -38,6 +38,11 @@ class AlignResult:
     geometric_sq: torch.Tensor  # [] sum of squared point-to-plane residuals over the inliers, metres^2
     coverage: torch.Tensor  # [] inliers / valid-depth pixels of the frame
     failure: str  # empty when the solve looks sound, else why not
+    # The final normal equations [6, 6] float64 at `motion` [4, 4] float64 (this camera -> the
+    # render's), for a left perturbation exp(xi) @ motion: a pose-graph edge's information
+    # (`pose_graph.alignment_information`). Device tensors, not read back.
+    hessian: torch.Tensor
+    motion: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -91,6 +96,42 @@ def read_report(fit: Linearisation, valid: torch.Tensor) -> SolveReport:
     return SolveReport(valid_n, associated, inliers, rms_m, rms_intensity, conditioning(hessian))
 
 
+def level_params(config: TrackingConfig, levels: int) -> list[AlignParams]:
+    """The residuals' scales and gate per pyramid level, finest first: the gate widens with a
+    coarser pixel's footprint."""
+    return [
+        AlignParams(
+            config.align_depth_sigma_m,
+            config.align_color_sigma,
+            config.align_photometric_weight,
+            config.align_max_depth_diff_m * 2**level,
+        )
+        for level in range(levels)
+    ]
+
+
+def prepare_rgbd(
+    color: torch.Tensor,
+    depth: torch.Tensor,
+    intrinsics: torch.Tensor,
+    target_color: torch.Tensor,
+    target_depth: torch.Tensor,
+    silhouette: torch.Tensor,
+    levels: int,
+    min_silhouette: float,
+) -> tuple[list[SourcePoints], list[TargetMaps]]:
+    """A frame (colour [H, W, 3] in [0, 1], depth [H, W] metres, intrinsics [3, 3]) as source
+    points and a target view (a render, or a stored keyframe with silhouette 1 where its depth
+    is valid) as maps, `levels` pyramid levels each, finest first. The target counts where its
+    silhouette passes `min_silhouette`; its intensity is normalised by the silhouette, as the
+    renderer normalises depth."""
+    sources = [source_points(level) for level in rgbd_pyramid(intensity(color), depth, intrinsics, levels)]
+    masked_depth = torch.where(silhouette > min_silhouette, target_depth, torch.zeros_like(target_depth))
+    gray = intensity(target_color) / silhouette.clamp(min=min_silhouette)
+    targets = [target_maps(level) for level in rgbd_pyramid(gray, masked_depth, intrinsics, levels)]
+    return sources, targets
+
+
 class AlignTracker:
     """One frame's pose by dense alignment to a render of the frozen map at `c2w_init`."""
 
@@ -105,16 +146,7 @@ class AlignTracker:
     ) -> None:
         """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py)."""
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
-        levels = len(config.align_iters)
-        self.params = [
-            AlignParams(
-                config.align_depth_sigma_m,
-                config.align_color_sigma,
-                config.align_photometric_weight,
-                config.align_max_depth_diff_m * 2**level,
-            )
-            for level in range(levels)
-        ]  # finest first: the gate widens with a coarser pixel's footprint
+        self.params = level_params(config, len(config.align_iters))
         self.recovery_schedule = (config.align_recovery_iters, *config.align_iters[1:])
         solve = partial(self.solve_images, schedule=config.align_iters)
         recover = partial(self.solve_images, schedule=self.recovery_schedule)
@@ -175,16 +207,9 @@ class AlignTracker:
         render_depth: torch.Tensor,
         silhouette: torch.Tensor,
     ) -> tuple[list[SourcePoints], list[TargetMaps]]:
-        """`prepare` on the images. The render counts where its silhouette passes
-        `align_min_silhouette`; its intensity is normalised by the silhouette, as the renderer
-        normalises depth."""
-        levels = len(self.params)
-        sources = [source_points(level) for level in rgbd_pyramid(intensity(color), depth, intrinsics, levels)]
-        threshold = self.config.align_min_silhouette
-        target_depth = torch.where(silhouette > threshold, render_depth, torch.zeros_like(render_depth))
-        gray = intensity(render_color) / silhouette.clamp(min=threshold)
-        targets = [target_maps(level) for level in rgbd_pyramid(gray, target_depth, intrinsics, levels)]
-        return sources, targets
+        """`prepare` on the images (`prepare_rgbd`)."""
+        images = (color, depth, intrinsics, render_color, render_depth, silhouette)
+        return prepare_rgbd(*images, len(self.params), self.config.align_min_silhouette)
 
     def solve(
         self, sources: list[SourcePoints], targets: list[TargetMaps], schedule: tuple[int, ...] | None = None
@@ -198,4 +223,4 @@ class AlignTracker:
         c2w = pose_matrix(rotmat_to_quat(c2w[:3, :3]), c2w[:3, 3])  # exactly rigid: no drift in later products
         c2w = torch.where(torch.isfinite(c2w).all(), c2w, c2w_init)
         coverage = state.fit.inliers / valid.sum().clamp(min=1)
-        return AlignResult(c2w, state.fit.geometric_sq, coverage, failure)
+        return AlignResult(c2w, state.fit.geometric_sq, coverage, failure, state.fit.hessian, state.pose)

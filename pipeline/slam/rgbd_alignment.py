@@ -315,11 +315,13 @@ def align(
     params: Sequence[AlignParams],
     schedule: Sequence[int],
     iteration: AlignIteration = lm_iteration,
+    start: torch.Tensor | None = None,
 ) -> LmState:
-    """Coarse to fine from the identity motion. `sources`, `targets` and `params` hold one entry
-    per pyramid level, finest first; `schedule` the iterations per level, coarsest first. Each
-    level starts from the best pose of the one before -> the finest level's last state."""
-    pose = torch.eye(4, dtype=torch.float64, device=sources[0].points.device)
+    """Coarse to fine from the motion `start` [4, 4] float64 (default: the identity). `sources`,
+    `targets` and `params` hold one entry per pyramid level, finest first; `schedule` the
+    iterations per level, coarsest first. Each level starts from the best pose of the one before
+    -> the finest level's last state."""
+    pose = torch.eye(4, dtype=torch.float64, device=sources[0].points.device) if start is None else start
     state = lm_start(pose)
     for level, iterations in zip(reversed(range(len(sources))), schedule):
         state = lm_start(state.pose)

@@ -23,20 +23,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-noise", type=float, default=0.0, help="TUM only: depth noise std = k x depth^2")
     parser.add_argument("--holes", type=float, default=0.0, help="TUM only: fraction of depth pixels zeroed")
     parser.add_argument("--time-jitter", type=float, default=0.0, help="TUM only: depth/pose timestamp offsets, s")
+    parser.add_argument("--loops", type=int, default=0, help="a closed path, back at its start N times (frames: all)")
+    parser.add_argument("--trap", action="store_true", help="the room's halves twins: look-alike places, no loop")
 
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.config import SyntheticConfig
-    from pipeline.devices import resolve_device, synthetic_for
+    from pipeline.devices import resolve_device
+    from pipeline.sources.datasets.synthetic import synthetic_for
     from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
     device = resolve_device("auto")
     asked = SyntheticConfig(
         frames=args.frames, width=args.width, height=args.height, seed=args.seed, speed=args.speed,
         jitter=args.jitter, fps=args.fps, layout=args.layout, depth_noise=args.depth_noise, holes=args.holes,
-        time_jitter=args.time_jitter,
+        time_jitter=args.time_jitter, loops=args.loops, trap=args.trap,
     )  # fmt: skip
-    config = synthetic_for(asked, device)
+    config = synthetic_for(asked, device)  # sizes left at 0 by device (a closed path's frames: all of it)
     count = write_synthetic(Path(args.out), config, not args.quiet, device)
     print(f"wrote {count} frames ({config.width}x{config.height}, {args.layout} layout) to {args.out}")
     return 0

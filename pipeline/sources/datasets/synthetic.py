@@ -9,16 +9,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
 
-from pipeline.config import SyntheticConfig
+from pipeline.config import SYNTHETIC_CPU, SYNTHETIC_GPU, SyntheticConfig
 
 ROOM_HALF = (3.0, 2.5)  # room half-extent in x and y
 ROOM_HEIGHT = 2.6
 PATH_CENTRE = (0.0, 0.0, 1.4)
+LOOP_HALF_AXES = (1.0, 0.8)  # metres: the closed path's ellipse in x and y (the open path's reach)
+LOOP_LOOK_AHEAD = 0.6  # radians: the closed path's camera looks outward, turned this much along the path
+TRAP_TURNS = 0.7  # a trap sequence without loops goes this far round: its last 0.2 turn repeats its first, turned
 NO_HIT = 1e9
 CPU = torch.device("cpu")
 
@@ -33,15 +36,16 @@ class Scene:
     colors: torch.Tensor  # [K, 2, 3] two colours per object in [0, 1]
     checker: torch.Tensor  # [K] checker cell size, metres
     stripe_dir: torch.Tensor  # [K, 3] stripe wave vector, radians per metre
+    turned: torch.Tensor | None = None  # [K] bool in a symmetric room: the object is the twin of another
 
     def to(self, device: torch.device) -> Scene:
-        return Scene(*(getattr(self, f.name).to(device) for f in fields(self)))
+        tensors = {f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "turned"}
+        return Scene(**tensors, turned=None if self.turned is None else self.turned.to(device))
 
 
-def make_scene(seed: int) -> Scene:
-    """A room with boxes, spheres and cylinders along its walls, all high-frequency textured."""
-    rng = np.random.default_rng(seed)
-    boxes, spheres, cylinders = [], [], []
+def _place_objects(rng: np.random.Generator) -> list[tuple[str, list[float]]]:
+    """Twelve (kind, parameters) along the walls, by angle round the room, in that order."""
+    placed: list[tuple[str, list[float]]] = []
     kinds = ["box", "sphere", "cylinder"] * 4
     angles = np.linspace(0, 2 * math.pi, len(kinds), endpoint=False) + rng.uniform(0, 0.3)
     for kind, angle in zip(kinds, angles):
@@ -52,12 +56,41 @@ def make_scene(seed: int) -> Scene:
         if kind == "box":
             z0 = rng.choice([0.0, rng.uniform(0.5, 1.4)])
             half = np.array([size, rng.uniform(0.15, 0.4), rng.uniform(0.2, 0.6)])
-            boxes.append([x - half[0], y - half[1], z0, x + half[0], y + half[1], z0 + 2 * half[2]])
+            placed.append((kind, [x - half[0], y - half[1], z0, x + half[0], y + half[1], z0 + 2 * half[2]]))
         elif kind == "sphere":
-            spheres.append([x, y, rng.uniform(0.4, 1.8), size])
+            placed.append((kind, [x, y, rng.uniform(0.4, 1.8), size]))
         else:
-            cylinders.append([x, y, 0.0, rng.uniform(0.6, 1.8), size * 0.7])
-    objects = 1 + len(boxes) + len(spheres) + len(cylinders)
+            placed.append((kind, [x, y, 0.0, rng.uniform(0.6, 1.8), size * 0.7]))
+    return placed
+
+
+def _turned_object(kind: str, params: list[float]) -> list[float]:
+    """An object's parameters turned by 180 degrees about the vertical axis through the room's centre."""
+    if kind == "box":
+        x0, y0, z0, x1, y1, z1 = params
+        return [-x1, -y1, z0, -x0, -y0, z1]
+    return [-params[0], -params[1], *params[2:]]
+
+
+def make_scene(seed: int, symmetric: bool = False) -> Scene:
+    """A room with boxes, spheres and cylinders along its walls, all high-frequency textured.
+
+    `symmetric`: the objects of the room's second half (by angle) are those of the first turned
+    by 180 degrees about the vertical axis through the centre, textured alike, and so are the
+    walls, floor and ceiling (y < 0 is textured as the turned y > 0): every view of one half has
+    a twin in the other, from the turned pose, that looks the same but is elsewhere."""
+    rng = np.random.default_rng(seed)
+    placed = _place_objects(rng)
+    twin_of = list(range(len(placed)))  # the object whose textures each one takes
+    if symmetric:
+        half = len(placed) // 2
+        placed = placed[:half] + [(kind, _turned_object(kind, params)) for kind, params in placed[:half]]
+        twin_of = list(range(half)) * 2
+    order = [k for kind in ("box", "sphere", "cylinder") for k, (other, _) in enumerate(placed) if other == kind]
+    boxes, spheres, cylinders = (
+        [placed[k][1] for k in order if placed[k][0] == kind] for kind in ("box", "sphere", "cylinder")
+    )
+    objects = 1 + len(placed)
     direction = rng.normal(size=(objects, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     wavelength = rng.uniform(0.08, 0.2, size=(objects, 1))
@@ -65,14 +98,19 @@ def make_scene(seed: int) -> Scene:
     def tensor(values: object) -> torch.Tensor:
         return torch.tensor(np.asarray(values), dtype=torch.float32)
 
-    return Scene(
+    identity = {k: 1 + position for position, k in enumerate(order)}  # placement -> object id
+    texture = torch.tensor([0] + [identity[twin_of[k]] for k in order])  # object id -> the id whose texture it has
+    scene = Scene(
         boxes=tensor(boxes).reshape(-1, 6),
         spheres=tensor(spheres).reshape(-1, 4),
         cylinders=tensor(cylinders).reshape(-1, 5),
-        colors=tensor(rng.uniform(0.05, 0.95, size=(objects, 2, 3))),
-        checker=tensor(rng.uniform(0.1, 0.3, size=objects)),
-        stripe_dir=tensor(direction * 2 * math.pi / wavelength),
+        colors=tensor(rng.uniform(0.05, 0.95, size=(objects, 2, 3)))[texture],
+        checker=tensor(rng.uniform(0.1, 0.3, size=objects))[texture],
+        stripe_dir=tensor(direction * 2 * math.pi / wavelength)[texture],
     )
+    if symmetric:
+        scene = replace(scene, turned=torch.tensor([False] + [k >= len(placed) // 2 for k in order]))
+    return scene
 
 
 def look_at(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -87,17 +125,42 @@ def look_at(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return pose
 
 
-def trajectory(config: SyntheticConfig, frames: int) -> np.ndarray:
-    """A smooth hand-held-like path around the room centre: [frames, 4, 4] camera-to-world."""
-    rng = np.random.default_rng(config.seed + 1)
-    phase = rng.uniform(0, 2 * math.pi, size=12)
-    t = np.arange(frames) / config.fps
-    omega = config.speed / 0.9  # the path below moves about 0.9 m per radian
-    centre = np.asarray(PATH_CENTRE)
-    shake = [
+def _shake(t: np.ndarray, phase: np.ndarray) -> list[np.ndarray]:
+    """Hand-held shake in x, y and z at times `t` (seconds): three sines each, in [-1, 1]."""
+    return [
         sum(np.sin(2 * math.pi * f * t + phase[3 + 3 * k + j]) for j, f in enumerate((1.3, 2.9, 4.7))) / 3
         for k in range(3)
     ]
+
+
+def loop_length() -> float:
+    """Metres round the closed path's ellipse (Ramanujan's approximation)."""
+    a, b = LOOP_HALF_AXES
+    return math.pi * (3 * (a + b) - math.sqrt((3 * a + b) * (a + 3 * b)))
+
+
+def path_turns(config: SyntheticConfig) -> float:
+    """How many times a sequence goes round the closed path: `loops`, else TRAP_TURNS for a
+    trap, else 0 (the open path)."""
+    return float(config.loops) if config.loops else TRAP_TURNS if config.trap else 0.0
+
+
+def closed_path_frames(config: SyntheticConfig) -> int:
+    """The frames of the whole closed path at `speed` and `fps`, the last back at the start."""
+    return round(path_turns(config) * loop_length() / config.speed * config.fps) + 1
+
+
+def trajectory(config: SyntheticConfig, frames: int) -> np.ndarray:
+    """A smooth hand-held-like path around the room centre: [frames, 4, 4] camera-to-world.
+    With `loops` (or `trap`), the closed path of `closed_path`, else an open one."""
+    rng = np.random.default_rng(config.seed + 1)
+    phase = rng.uniform(0, 2 * math.pi, size=12)
+    t = np.arange(frames) / config.fps
+    if path_turns(config):
+        return closed_path(config, t, phase)
+    omega = config.speed / 0.9  # the path below moves about 0.9 m per radian
+    centre = np.asarray(PATH_CENTRE)
+    shake = _shake(t, phase)
     position = np.stack(
         [
             centre[0] + 1.0 * np.sin(0.7 * omega * t + phase[0]) + config.jitter * shake[0],
@@ -108,6 +171,29 @@ def trajectory(config: SyntheticConfig, frames: int) -> np.ndarray:
     )
     yaw = phase[0] + 0.4 * omega * t + 0.5 * config.jitter * shake[0]
     pitch = -0.15 + 0.1 * np.sin(0.3 * omega * t) + 0.5 * config.jitter * shake[1]
+    forward = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    return np.stack([look_at(p, f) for p, f in zip(position, forward)])
+
+
+def closed_path(config: SyntheticConfig, t: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """An ellipse round the room's centre at `speed` (on average), looking outward and a little
+    ahead, with the open path's shake: at times `t` [F] seconds -> [F, 4, 4] camera-to-world.
+    It comes back to its start (within the shake) every turn, and the pose half a turn on is
+    the start's turned by 180 degrees about the vertical axis through the centre (height and
+    pitch repeat every half turn), so in a symmetric room it sees the twin of the same view."""
+    angle = 2 * math.pi * config.speed / loop_length() * t + phase[0]
+    shake = _shake(t, phase)
+    (a, b), centre = LOOP_HALF_AXES, np.asarray(PATH_CENTRE)
+    position = np.stack(
+        [
+            centre[0] + a * np.cos(angle) + config.jitter * shake[0],
+            centre[1] + b * np.sin(angle) + config.jitter * shake[1],
+            centre[2] + 0.15 * np.sin(2 * angle) + config.jitter * shake[2],
+        ],
+        axis=1,
+    )
+    yaw = angle + LOOP_LOOK_AHEAD + 0.5 * config.jitter * shake[0]
+    pitch = -0.15 + 0.1 * np.sin(2 * angle) + 0.5 * config.jitter * shake[1]
     forward = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
     return np.stack([look_at(p, f) for p, f in zip(position, forward)])
 
@@ -250,7 +336,20 @@ def cast(
             radial = torch.cat([(p[:, :2] - params[:2]) / params[4], torch.zeros_like(p[:, :1])], dim=1)
             on_cap = (p[:, 2:] - params[3]).abs() < 1e-4
             normal[mask] = torch.where(on_cap, torch.tensor([0.0, 0.0, 1.0], device=device), radial)
+    if scene.turned is not None:
+        point, normal = _turned_back(scene.turned, point, normal, flat_id)
     return best_t, shade(scene, point, normal, flat_id).reshape(height, width, 3)
+
+
+def _turned_back(
+    turned: torch.Tensor, point: torch.Tensor, normal: torch.Tensor, ids: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """In a symmetric room, the points [M, 3] and normals [M, 3] of the twin objects and of the
+    room's half y < 0, turned back by 180 degrees about the vertical axis through the centre, so
+    they are textured and lit as their originals."""
+    back = (turned[ids] | ((ids == 0) & (point[:, 1] < 0)))[:, None]
+    flip = torch.tensor([-1.0, -1.0, 1.0], device=point.device)
+    return torch.where(back, point * flip, point), torch.where(back, normal * flip, normal)
 
 
 def shade(scene: Scene, point: torch.Tensor, normal: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
@@ -308,7 +407,7 @@ def sequence(
 ) -> tuple[np.ndarray, Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
     """-> (intrinsics [3, 3], an iterator of (colour, depth, camera-to-world) per frame), ray cast
     on `device` (a GPU generates a 1200x680 frame in milliseconds, a CPU core in a tenth of a second)."""
-    scene = make_scene(config.seed).to(device)
+    scene = make_scene(config.seed, symmetric=config.trap).to(device)
     poses = trajectory(config, config.frames)
     intrinsics = default_intrinsics(config.width, config.height)
     supersample = 2 if config.width * config.height <= 320 * 240 else 1
@@ -319,3 +418,11 @@ def sequence(
             yield color, depth, c2w
 
     return intrinsics, frames()
+
+
+def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticConfig:
+    """Fill the sizes left at 0 for `device` (a closed path's frames: all of it, on any device)."""
+    width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
+    if path_turns(config):
+        frames = closed_path_frames(config)
+    return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)

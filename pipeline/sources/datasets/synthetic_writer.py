@@ -33,6 +33,8 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, 
     reused only when it matches."""
     if config.frames <= 0 or config.width <= 0 or config.height <= 0:
         raise UserError("synthetic frames, width and height must be positive")
+    if config.loops < 0:
+        raise UserError("synthetic loops must be >= 0")
     if config.layout not in ("replica", "tum"):
         raise UserError(f"unknown layout '{config.layout}' (choose replica or tum)")
     if config.layout == "replica" and (config.depth_noise or config.holes or config.time_jitter):
@@ -55,6 +57,8 @@ def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True,
     beside its place and renamed into it, so processes that want the same sequence at once (the
     cells of a bench on one node) each see it whole: the first rename wins, the others' copies go."""
     key = f"room_s{config.seed}_{config.width}x{config.height}_{config.frames}f_v{config.speed:g}_j{config.jitter:g}"
+    if config.loops or config.trap:
+        key += f"_l{config.loops}" + ("_trap" if config.trap else "")
     if config.layout == "tum":
         key += f"_tum_n{config.depth_noise:g}_h{config.holes:g}_t{config.time_jitter:g}"
     path = root / key
