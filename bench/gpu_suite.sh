@@ -71,6 +71,9 @@ for part in "$@"; do
     process-smoke) python3 -m pipeline run --preset tiny --set slam.schedule=process --set synthetic.frames=40 \
                      --quiet --output /tmp/smoke --name process 2>&1 | tail -n 25
                    cp /tmp/smoke/process/metrics.json "$out/process_smoke.json" ;;
+    schedules-final) bench synthetic-tum "$tum" synthetic --presets tiny --variants sequential,process,process-views2 \
+                       --stem schedules_tiny
+                     bench "$tum" --presets base --variants sequential --stem schedules_base ;;
     schedules-tiny) bench synthetic-tum "$tum" synthetic --presets tiny \
                       --variants sequential,overlapped-views2,process,process-views2 --stem schedules_tiny ;;
     schedules-small) bench synthetic-tum "$tum" synthetic --presets small --variants sequential,process --stem schedules_small ;;

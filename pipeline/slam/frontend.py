@@ -114,7 +114,7 @@ class TrackingFrontend:
         poses = self.poses[:frames]
         for keyframe in keyframes:
             if keyframe.position < len(poses):
-                poses[keyframe.position] = keyframe.c2w
+                poses[keyframe.position] = keyframe.c2w.to(self.device)
         return poses
 
     def mark(self) -> TrackerMark:

@@ -67,9 +67,12 @@ class _ProfilerThread:
             return cls._shared
 
     def call(self, fn: Callable[[], T]) -> T:
+        return self.submit(fn).result()
+
+    def submit(self, fn: Callable[[], T]) -> Future[T]:
         done: Future[T] = Future()
         self._calls.put((fn, done))
-        return done.result()
+        return done
 
     def _serve(self) -> None:
         while True:
@@ -81,30 +84,38 @@ class _ProfilerThread:
 
 
 class KernelTimer:
-    """Records this process's kernels and copies between `start()` and `stop()`."""
+    """Records this process's kernels and copies between `start()` and `stop()`. The stop is
+    handed to the profiler's thread without waiting, and the records are read (seconds of
+    parsing) only by `busy_ms()`, after the run: the window costs SLAM CUPTI's own overhead
+    per launch, nothing at its ends."""
 
     def __init__(self) -> None:
         self._profile: profile | None = None
+        self._stopped: Future[None] | None = None
         self._started = 0.0
+        self.wall_ms = 0.0
 
     def start(self) -> None:
         self._profile = profile(activities=[ProfilerActivity.CUDA])
         _ProfilerThread.shared().call(self._profile.start)
         self._started = time.perf_counter()
 
-    def stop(self) -> tuple[float, float]:
-        """-> (busy ms: the union of kernel and copy intervals, wall ms of the window)."""
+    def stop(self) -> None:
         assert self._profile is not None
-        torch.cuda.synchronize()
-        wall_ms = 1000 * (time.perf_counter() - self._started)
-        recording, self._profile = self._profile, None
-        _ProfilerThread.shared().call(recording.stop)
+        self.wall_ms = 1000 * (time.perf_counter() - self._started)
+        self._stopped = _ProfilerThread.shared().submit(self._profile.stop)
+
+    def busy_ms(self) -> float:
+        """The union of kernel and copy intervals of the window, milliseconds."""
+        assert self._profile is not None and self._stopped is not None
+        self._stopped.result()
+        recording, self._profile, self._stopped = self._profile, None, None
         device = [
             (e.time_range.start, e.time_range.end)
             for e in recording.events()
             if e.device_type == DeviceType.CUDA and not e.is_user_annotation
         ]
-        return union_ms(device) / 1000.0, wall_ms
+        return union_ms(device) / 1000.0
 
 
 @dataclass(frozen=True)
@@ -116,47 +127,56 @@ class KernelSample:
 
 
 class KernelSampler:
-    """A SLAM-stage observer: opens the window after WINDOW_START frames, closes it
-    WINDOW_FRAMES later (or when the run ends, `close()`). `elsewhere(True)` starts the same
-    recording in the session's other processes, `elsewhere(False)` stops it and returns their
-    busy ms."""
+    """A SLAM-stage observer: opens the window after WINDOW_START frames and closes it
+    WINDOW_FRAMES later (or at the end of a shorter run); `close()` reads the sample after the
+    run. `elsewhere(step)` does the same in the session's other processes: "start", "stop", and
+    "read", which returns their busy ms."""
 
-    def __init__(self, elsewhere: Callable[[bool], float]) -> None:
+    def __init__(self, elsewhere: Callable[[str], float]) -> None:
         self.elsewhere = elsewhere
         self.timer = KernelTimer()
         self.sample: KernelSample | None = None
         self.failed = False
-        self._opened_at: int | None = None
+        self._window: tuple[int, int | None] | None = None  # frames done when it opened and closed
 
     def __call__(self, slam: SlamView, frame: DeviceFrame, result: FrameResult) -> None:
         done = slam.frames_done
-        if self._opened_at is None and self.sample is None and not self.failed and done >= WINDOW_START:
-            self._opened_at = done
+        if self._window is None and not self.failed and done >= WINDOW_START:
+            self._window = (done, None)
             self._measured(self._open)
-        elif self._opened_at is not None and done >= self._opened_at + WINDOW_FRAMES:
-            self._measured(lambda: self._close(done))
+        elif self._window is not None and self._window[1] is None and done >= self._window[0] + WINDOW_FRAMES:
+            self._window = (self._window[0], done)
+            self._measured(self._stop)
 
     def close(self, frames_done: int) -> None:
-        """The run ended: close a window still open (a shorter run's sample)."""
-        if self._opened_at is not None:
-            self._measured(lambda: self._close(frames_done))
+        """After the run: close a window still open, and read the sample."""
+        if self._window is None or self.failed:
+            return
+        if self._window[1] is None:
+            self._window = (self._window[0], frames_done)
+            self._measured(self._stop)
+        self._measured(self._read)
 
     def _measured(self, step: Callable[[], None]) -> None:
         """A measurement that fails is reported once and given up; it never stops the run."""
         try:
             step()
-        except RuntimeError as exc:
+        except (RuntimeError, AssertionError) as exc:
             log.warning("kernel busy fraction not measured: %s", exc)
-            self.failed, self._opened_at = True, None
+            self.failed = True
 
     def _open(self) -> None:
-        self.elsewhere(True)
+        self.elsewhere("start")
         self.timer.start()
 
-    def _close(self, done: int) -> None:
-        assert self._opened_at is not None
-        busy_ms, wall_ms = self.timer.stop()
-        busy_ms += self.elsewhere(False)
+    def _stop(self) -> None:
+        torch.cuda.synchronize()
+        self.timer.stop()
+        self.elsewhere("stop")
+
+    def _read(self) -> None:
+        assert self._window is not None and self._window[1] is not None
+        busy_ms = self.timer.busy_ms() + self.elsewhere("read")
+        wall_ms = self.timer.wall_ms
         fraction = busy_ms / wall_ms if wall_ms > 0 else float("nan")
-        self.sample = KernelSample(fraction, busy_ms, wall_ms, (self._opened_at, done))
-        self._opened_at = None
+        self.sample = KernelSample(fraction, busy_ms, wall_ms, (self._window[0], self._window[1]))

@@ -67,7 +67,7 @@ class SplaTAM:
         (`mapping.final_iters`), published. -> the renders done."""
         return self.backend.refine(final_renders, views=len(self.backend.keyframes))
 
-    def sample_kernels(self, on: bool) -> float:
+    def sample_kernels(self, step: str) -> float:
         """No other process launches this SLAM's kernels (`KernelSampler`)."""
         return 0.0
 

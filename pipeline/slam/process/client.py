@@ -119,14 +119,15 @@ class MappingProcess:
         sent = reply.result()
         return (None if sent.state is None else sent.state.unpacked()), sent.version
 
-    def sample_kernels(self, on: bool) -> float:
-        """Start or stop recording the mapping process's kernels; a stop returns their busy ms."""
-        if on:
-            self.to_mapping.put(m.SampleKernels(True))
+    def sample_kernels(self, step: str) -> float:
+        """Start, stop or read the recording of the mapping process's kernels (`KernelSampler`);
+        a read returns their busy ms."""
+        if step != "read":
+            self.to_mapping.put(m.SampleKernels(step))
             return 0.0
         reply: Future[m.KernelsSampled] = Future()
         self._kernels = reply
-        self.to_mapping.put(m.SampleKernels(False))
+        self.to_mapping.put(m.SampleKernels(step))
         self._wait_for(reply.done)
         return reply.result().busy_ms
 

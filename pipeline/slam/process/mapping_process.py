@@ -139,25 +139,28 @@ class MappingLoop:
                 self._publish()
             self.setup.outbox.put(m.Done(renders))
         elif isinstance(message, m.SampleKernels):
-            self._sample_kernels(message.on)
+            self._sample_kernels(message.step)
         elif isinstance(message, m.Shutdown):
             self.running = False
         else:
             raise TypeError(f"the mapping process got an unknown message {message!r}")
 
-    def _sample_kernels(self, on: bool) -> None:
-        """Start or stop recording kernels; a recording that fails gives NaN, never a failure."""
+    def _sample_kernels(self, step: str) -> None:
+        """Start, stop or read the kernel recording; one that fails reads NaN, never a failure."""
         try:
-            if on:
+            if step == "start":
                 self.kernel_timer.start()
-                return
-            busy_ms = self.kernel_timer.stop()[0]
+            elif step == "stop":
+                torch.cuda.synchronize()
+                self.kernel_timer.stop()
         except (RuntimeError, AssertionError):
-            busy_ms = float("nan")
-            if on:
-                self.kernel_timer = KernelTimer()
-                return
-        self.setup.outbox.put(m.KernelsSampled(busy_ms))
+            self.kernel_timer = KernelTimer()
+        if step == "read":
+            try:
+                busy_ms = self.kernel_timer.busy_ms()
+            except (RuntimeError, AssertionError):
+                busy_ms = float("nan")
+            self.setup.outbox.put(m.KernelsSampled(busy_ms))
 
     def _map_waiting(self, everything: bool) -> None:
         """Offline, the oldest waiting frame (`everything`: all of them, in order); live, the newest,

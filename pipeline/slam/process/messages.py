@@ -113,9 +113,9 @@ class Finish:
 
 @dataclass(frozen=True)
 class SampleKernels:
-    """Start (`on`) or stop recording this process's kernels (a stop is answered by KernelsSampled)."""
+    """Start, stop or read ("read": answered by KernelsSampled) the recording of this process's kernels."""
 
-    on: bool
+    step: str
 
 
 @dataclass(frozen=True)

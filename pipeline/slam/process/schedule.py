@@ -142,9 +142,9 @@ class ProcessSplaTAM:
         self.mapping.hold_newest(self.mapping.newest_version())
         return renders
 
-    def sample_kernels(self, on: bool) -> float:
+    def sample_kernels(self, step: str) -> float:
         """Kernel recording in the mapping process (`KernelSampler`)."""
-        return self.mapping.sample_kernels(on)
+        return self.mapping.sample_kernels(step)
 
     def mapping_summary(self) -> dict[str, Any]:
         """What the mapping process did: frames mapped and passed over, their mean times, and the
