@@ -239,3 +239,22 @@ def test_kernel_busy_time_is_the_union_of_the_intervals() -> None:
 
     assert union_ms([]) == 0.0
     assert union_ms([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0), (5.5, 5.7)]) == 4.0
+
+
+@pytest.mark.slow
+def test_a_warm_up_leaves_no_map_behind_and_the_run_starts_afresh(replica_seq: Path) -> None:
+    """After a live warm-up on a frame, nothing is published for the session (a stop at once has
+    nothing to save); the next frames start a map at the identity."""
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:3]
+    slam = _process_slam([], live=True)
+    try:
+        slam.warm_up(frames[0])
+        assert slam.frames_done == 0 and slam.gaussians is None
+        slam.finish(0)
+        assert slam.gaussians is None  # the warm-up's versions are not this session's map
+        results = [slam.step(frame) for frame in frames[1:]]
+        assert torch.equal(slam.poses[0], torch.eye(4)) and results[-1].map_version > results[0].map_version
+        slam.finish(0)
+        assert slam.gaussians is not None and slam.checkpoint().frames_done == 2
+    finally:
+        slam.close()

@@ -139,7 +139,9 @@ class ProcessSplaTAM:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders
         over every keyframe); hold the final version. -> the final renders done."""
         renders = self.mapping.finish(final_renders)
-        self.mapping.hold_newest(self.mapping.newest_version())
+        newest = self.mapping.newest_version()
+        if newest >= self._first_version:  # none after a warm-up when no frame followed it
+            self.mapping.hold_newest(newest)
         return renders
 
     def sample_kernels(self, step: str) -> float:
