@@ -194,9 +194,7 @@ class SlamConfig:
 
     schedule: Schedule = "sequential"  # overlapped: two threads; process: mapping in a process of its own
     max_lead: int = 2  # overlapped and process, offline: frames tracking may run ahead of mapping (live: no bound)
-    backend_timeout_s: float = (
-        120.0  # process: a mapping process silent this long is hung (its first compile: ~a minute)
-    )
+    backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
 
 
 @dataclass(frozen=True)
