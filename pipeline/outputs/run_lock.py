@@ -5,6 +5,10 @@ The kernel releases the lock when its holder exits, however it exits (a kill, a 
 stale lock file never blocks a later run. The file holds the holder's pid for the message a
 second process gets; it is written in place (it must stay the file that is locked), the one
 file of a run folder not written through `atomic.py`, and only read for that message.
+
+The lock never follows a link and never empties a file it did not make: a `.lock` that is a
+symlink, a hard link, not a plain file or longer than a pid line is refused (a run folder
+received from someone else cannot make a run truncate another file).
 """
 
 from __future__ import annotations
@@ -12,12 +16,14 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import stat
 from pathlib import Path
 from types import TracebackType
 
 from pipeline.errors import UserError
 
 LOCK_NAME = ".lock"
+MAX_LOCK_BYTES = 32  # a pid line: anything longer is not a lock file this module wrote
 
 
 class RunFolderBusy(UserError):
@@ -34,10 +40,7 @@ class RunLock:
         self._fd: int | None = None
 
     def acquire(self) -> None:
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise UserError(f"cannot lock the run folder {self.folder}: {exc.strerror}") from None
+        fd = self._open()
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -50,6 +53,24 @@ class RunLock:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
+
+    def _open(self) -> int:
+        """The lock file's descriptor: created, or an earlier lock file (never through a link)."""
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK
+        if self.path.is_symlink():
+            raise UserError(f"{self.path} is a symbolic link, not a lock file: remove it to use this run folder")
+        try:
+            fd = os.open(self.path, flags, 0o644)
+        except OSError as exc:
+            raise UserError(f"cannot lock the run folder {self.folder} ({self.path}): {exc.strerror}") from None
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1 or info.st_size > MAX_LOCK_BYTES:
+            os.close(fd)
+            raise UserError(
+                f"{self.path} is not a lock file of gsplatam (a link, or not a plain file of a pid): "
+                "remove it to use this run folder"
+            )
+        return fd
 
     def release(self) -> None:
         fd, self._fd = self._fd, None

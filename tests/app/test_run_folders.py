@@ -138,3 +138,37 @@ def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
     output.write_text("x")
     assert main(["run", "--output", str(output), "--quiet"]) == 2
     assert f"the output folder {output} is a file, not a folder" in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("kind", ["symlink", "hardlink", "foreign file"])
+def test_a_lock_that_is_a_link_or_another_file_is_refused_and_nothing_is_truncated(tmp_path: Path, kind: str) -> None:
+    folder, other = tmp_path / "run", tmp_path / "precious.txt"
+    folder.mkdir()
+    other.write_text("the user's own words\n" * 4)
+    lock = folder / ".lock"
+    if kind == "symlink":
+        lock.symlink_to(other)
+    elif kind == "hardlink":
+        os.link(other, lock)
+    else:
+        lock.write_text(other.read_text())
+    with pytest.raises(UserError, match=rf"{lock} is (a symbolic link|not a lock file).*remove it"):
+        with RunLock(folder):
+            pass
+    assert other.read_text() == "the user's own words\n" * 4
+    assert lock.is_symlink() or lock.read_text() == other.read_text()
+
+
+def test_resume_through_a_symlinked_lock_exits_2_and_leaves_the_target_whole(
+    replica_seq: Path, tmp_path: Path, capsys
+) -> None:
+    out, other = tmp_path / "out", tmp_path / "precious.txt"
+    assert (
+        main(["run", str(replica_seq), "--output", str(out), "--name", "r", "--quiet", "--set", "dataset.end=2"]) == 0
+    )
+    other.write_text("keep me\n")
+    (out / "r" / ".lock").unlink()
+    (out / "r" / ".lock").symlink_to(other)
+    assert main(["run", "--resume", str(out / "r"), "--quiet"]) == 2
+    assert "is a symbolic link, not a lock file" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert other.read_text() == "keep me\n"
