@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from pipeline.config import SyntheticConfig
 from pipeline.render.types import Gaussians
@@ -97,3 +99,19 @@ def make_checkpoint(
     state = (generator or torch.Generator()).get_state()
     mapping = BackendState(gaussians, keyframes, scene_radius, rng, state, frames_seen=int(poses.shape[0]))
     return Checkpoint(tracking, mapping)
+
+
+def tamper_checkpoint(path: Path, name: str, change: str) -> None:
+    """Rewrite one tensor of the checkpoint at `path`, keeping its header."""
+    with safe_open(str(path), framework="pt") as f:
+        meta, tensors = f.metadata(), {key: f.get_tensor(key) for key in f.keys()}
+    tensor = tensors[name]
+    if change == "int32":
+        tensors[name] = tensor.to(torch.int32)
+    elif change == "one axis fewer":
+        tensors[name] = tensor[..., :-1].contiguous()
+    elif change == "nan":
+        tensors[name] = torch.full_like(tensor, float("nan"))
+    else:
+        tensors[name] = tensor[:-1].contiguous()  # "one row fewer"
+    save_file(tensors, str(path), meta)

@@ -80,7 +80,10 @@ def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
             raise ValueError(f"format {header.get('format')!r}")
         if header.get("version") != VERSION:
             raise ValueError(f"version {header.get('version')!r}, this gsplatam reads version {VERSION}")
-        return _checkpoint_of(header, tensors), RunDescription.from_json(header["run"])
+        run = RunDescription.from_json(header["run"])
+        checkpoint = _checkpoint_of(header, tensors)
+        check_tensors(checkpoint, run)
+        return checkpoint, run
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
 
@@ -118,6 +121,54 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
     if not 0 <= mapping.frames_seen <= tracking.frames_done:
         raise ValueError(f"{mapping.frames_seen} frames mapped of {tracking.frames_done}")
     return Checkpoint(tracking, mapping)
+
+
+def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
+    """ValueError naming the first tensor of `checkpoint` whose dtype, shape (against the other
+    tensors and `run`'s frame size and Gaussian kind) or values (NaN, infinite) are not what a
+    run writes: a tampered or damaged checkpoint is refused before anything uses it."""
+    gaussians, n = checkpoint.gaussians, len(checkpoint.gaussians)
+    axes = _scale_axes(run, gaussians.log_scales)
+    shapes = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, axes), "opacity_logits": (n,), "colors": (n, 3)}
+    for name in PARAMETER_NAMES:
+        _check(f"gaussians.{name}", getattr(gaussians, name), shapes[name])
+    _check("poses", checkpoint.poses, (checkpoint.frames_done, 4, 4))
+    if checkpoint.tracking.last_prior is not None:
+        _check("last_prior", checkpoint.tracking.last_prior, (4, 4))
+    state = checkpoint.mapping.generator_state
+    _check("generator_state", state, (state.numel(),), torch.uint8)
+    size = _keyframe_size(checkpoint, run)
+    for i, k in enumerate(checkpoint.keyframes):
+        _check(f"keyframes.{i}.color_u8", k.color_u8, (*size, 3), torch.uint8)
+        _check(f"keyframes.{i}.depth", k.depth, size)
+        _check(f"keyframes.{i}.c2w", k.c2w, (4, 4))
+
+
+def _scale_axes(run: RunDescription, log_scales: torch.Tensor) -> int:
+    """1 (isotropic) or 3 scale axes per Gaussian: as the run records, else as stored."""
+    if run.isotropic is not None:
+        return 1 if run.isotropic else 3
+    stored = log_scales.shape[-1] if log_scales.dim() == 2 else 0
+    return stored if stored in (1, 3) else 3
+
+
+def _keyframe_size(checkpoint: Checkpoint, run: RunDescription) -> tuple[int, ...]:
+    """(height, width) of every keyframe: the run's frame size, else the first keyframe's."""
+    if run.size is not None:
+        return run.size[1], run.size[0]
+    return tuple(checkpoint.keyframes[0].depth.shape[:2]) if checkpoint.keyframes else ()
+
+
+def _check(name: str, tensor: torch.Tensor, shape: tuple[int, ...], dtype: torch.dtype | None = None) -> None:
+    """ValueError unless `tensor` has `shape` and `dtype` (None: any floating dtype, finite values)."""
+    if dtype is not None and tensor.dtype != dtype:
+        raise ValueError(f"{name} is {tensor.dtype}, not {dtype}")
+    if dtype is None and not tensor.is_floating_point():
+        raise ValueError(f"{name} is {tensor.dtype}, not a floating-point tensor")
+    if tuple(tensor.shape) != shape:
+        raise ValueError(f"{name} has shape {tuple(tensor.shape)}, not {shape}")
+    if dtype is None and not bool(torch.isfinite(tensor).all()):
+        raise ValueError(f"{name} holds NaN or infinite values")
 
 
 def _json_rng_state(state: tuple[Any, ...]) -> list[Any]:

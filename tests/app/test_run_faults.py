@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 import torch
-from conftest import ROOT, SMALL_SYNTH, make_checkpoint
+from conftest import ROOT, SMALL_SYNTH, make_checkpoint, tamper_checkpoint
 from live_helpers import wait_for
 
 from pipeline.app.cli import main
@@ -228,6 +228,21 @@ def test_resume_refuses_another_run_touching_nothing(
     assert line.startswith("gsplatam: error: ") and message in line and str(folder) in line
     after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.iterdir() if p.name != ".lock"}
     assert after == before  # config.toml not rewritten, nothing else written
+
+
+@pytest.mark.parametrize("change", ["int32", "one axis fewer", "nan"])
+def test_resume_refuses_a_checkpoint_of_tampered_tensors_touching_nothing(
+    replica_seq: Path, tmp_path: Path, capsys, change: str
+) -> None:
+    folder = _resumable_folder(tmp_path, replica_seq, SAME, (64, 48))
+    tamper_checkpoint(folder / "checkpoint.safetensors", "gaussians.means", change)
+    (folder / "frames.csv").write_text("earlier rows\n")
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.iterdir()}
+    assert main(["run", "--resume", str(folder), "--device", "cpu", "--quiet"]) == 2
+    line = _last_error(capsys)
+    assert f"{folder / 'checkpoint.safetensors'} is not a gsplatam checkpoint" in line and "gaussians.means" in line
+    after = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.iterdir() if p.name != ".lock"}
+    assert after == before  # config.toml and frames.csv not rewritten
 
 
 def test_a_resumable_folder_of_the_same_run_passes_the_checks(replica_seq: Path, tmp_path: Path) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import make_checkpoint
+from conftest import make_checkpoint, tamper_checkpoint
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
@@ -106,3 +106,37 @@ def test_resume_never_runs_code_from_a_crafted_pickle(replica_seq: Path, tmp_pat
     assert err[-1].startswith("gsplatam: error: ") and name in err[-1] and "Traceback" not in "\n".join(err)
     if name == "checkpoint.pt":
         assert "never loaded" in err[-1]
+
+
+@pytest.mark.parametrize(
+    "name, change, message",
+    [
+        ("gaussians.means", "int32", "gaussians.means is torch.int32, not a floating-point tensor"),
+        ("gaussians.means", "one axis fewer", r"gaussians.means has shape \(10, 2\), not \(10, 3\)"),
+        ("gaussians.means", "nan", "gaussians.means holds NaN or infinite values"),
+        ("gaussians.colors", "one row fewer", r"gaussians.colors has shape \(9, 3\), not \(10, 3\)"),
+        ("gaussians.log_scales", "nan", "gaussians.log_scales holds NaN"),
+        ("poses", "nan", "poses holds NaN"),
+        ("keyframes.1.depth", "one axis fewer", r"keyframes.1.depth has shape \(4, 4\), not \(4, 5\)"),
+        ("keyframes.0.color_u8", "int32", "keyframes.0.color_u8 is torch.int32, not torch.uint8"),
+        ("last_prior", "nan", "last_prior holds NaN"),
+    ],
+)
+def test_every_tensor_is_checked_for_dtype_shape_and_finite_values(
+    tmp_path: Path, name: str, change: str, message: str
+) -> None:
+    path = tmp_path / "c.safetensors"
+    write_checkpoint(path, _checkpoint(), RunDescription("room", size=(5, 4), isotropic=True))
+    tamper_checkpoint(path, name, change)
+    with pytest.raises(DataError, match=rf"{path} is not a gsplatam checkpoint \(ValueError: {message}"):
+        read_checkpoint(path)
+
+
+def test_anisotropic_scales_are_refused_for_an_isotropic_run(tmp_path: Path) -> None:
+    saved = _checkpoint()
+    saved.gaussians.log_scales = saved.gaussians.log_scales.repeat(1, 3)
+    write_checkpoint(tmp_path / "c.safetensors", saved, RunDescription("room", isotropic=True))
+    with pytest.raises(DataError, match=r"gaussians.log_scales has shape \(10, 3\), not \(10, 1\)"):
+        read_checkpoint(tmp_path / "c.safetensors")
+    write_checkpoint(tmp_path / "c.safetensors", saved, RunDescription("room", isotropic=False))
+    assert read_checkpoint(tmp_path / "c.safetensors")[0].gaussians.log_scales.shape == (10, 3)
