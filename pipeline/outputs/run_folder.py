@@ -12,6 +12,7 @@ from typing import IO
 
 import numpy as np
 
+from pipeline import __version__
 from pipeline.config import Config, load_config, to_toml
 from pipeline.errors import DataError, OutputError
 from pipeline.files.atomic import atomic_export, atomic_write_all, atomic_write_text, bytes_writer
@@ -23,7 +24,7 @@ from pipeline.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.outputs.intrinsics import CameraIntrinsics, read_intrinsics
 from pipeline.outputs.ply import gaussian_ply_bytes, write_ply
 from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_lock import RunLock
+from pipeline.outputs.run_lock import LOCK_NAME, RunLock
 from pipeline.outputs.run_metrics import RunMetrics
 from pipeline.render.types import Gaussians
 from pipeline.slam.state import Checkpoint
@@ -35,6 +36,8 @@ RESULTS = (
     "trace.json", "profile.txt", "intrinsics.json",
 )  # fmt: skip
 RECORDING = "recording"  # serve's live.record: the input in the TUM layout
+MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
+MARKER_FORMAT = "gsplatam.run"
 # The folders a run or an export fills, with what it writes into each (globs in the folder).
 FILLED_FOLDERS = {RECORDING: RECORDING_FILES, FORMATS["nerfstudio"]: NERFSTUDIO_FILES}
 
@@ -57,6 +60,8 @@ class RunFolder:
         self.trace = path / "trace.json"  # --profile: the torch profiler's Chrome trace
         self.profile = path / "profile.txt"  # --profile: per-stage times, top kernels and host calls
         self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
+        self.marker = path / MARKER  # this is a run folder of gsplatam (`--overwrite` acts on no other)
+        self.lock = path / LOCK_NAME  # held while a process writes the folder (run_lock.py)
         self._frames_file: IO[str] | None = None
 
     @staticmethod
@@ -73,6 +78,40 @@ class RunFolder:
         while another process does). The folder must exist."""
         with RunLock(self.path):
             yield self
+
+    def is_run(self) -> bool:
+        """Whether the folder is a run folder of this tool: it carries the run marker, or (made by
+        a version before the marker) it holds both config.toml and frames.csv."""
+        if self.marker.is_file() and not self.marker.is_symlink():
+            return True
+        return self.config.is_file() and self.frames_csv.is_file()
+
+    def mark(self) -> None:
+        """Write the run marker (the folder is a run folder of this tool)."""
+        marker = {"format": MARKER_FORMAT, "version": __version__}
+        with _writing(self.marker):
+            atomic_write_text(self.marker, json.dumps(marker) + "\n")
+
+    def holds_results(self) -> bool:
+        """Whether a run saved anything here: a checkpoint (its first save) or a recording."""
+        return self.checkpoint.is_file() or self.recorded()
+
+    def owns(self, path: Path) -> bool:
+        """Whether `path` is one of the files only a run writes here (its results, config,
+        marker, lock, or anything in its recording): an export never writes onto one."""
+        if path == self.path or not path.is_relative_to(self.path):
+            return False
+        return path.relative_to(self.path).parts[0] in {*RESULTS, self.config.name, MARKER, LOCK_NAME, RECORDING}
+
+    def remove_unfinished(self) -> None:
+        """Remove what a run that saved nothing wrote (config, frames.csv, marker, lock, ...),
+        then the folder if nothing else is left in it."""
+        self.remove_earlier_run()
+        for path in (self.marker, self.lock):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        with contextlib.suppress(OSError):
+            self.path.rmdir()
 
     def export(self, fmt: str) -> Path:
         """Where `gsplatam export --to fmt` writes by default."""

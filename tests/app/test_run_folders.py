@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ from conftest import ROOT
 
 from pipeline.app.cli import main
 from pipeline.errors import UserError
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.outputs.run_folders import LATEST, new_run_folder
 from pipeline.outputs.run_lock import RunFolderBusy, RunLock
 
@@ -20,8 +22,10 @@ def test_runs_without_a_name_get_fresh_folders_and_latest_points_at_the_newest(t
     with new_run_folder(tmp_path, "room_tiny") as claimed:
         first = claimed.path
         claimed.metrics.write_text("{}")
+        claimed.checkpoint.write_text("saved")
     with new_run_folder(tmp_path, "room_tiny") as claimed:
         second = claimed.path
+        claimed.checkpoint.write_text("saved")
     assert first != second and first.name.startswith("room_tiny-") and second.name.startswith(first.name[:18])
     assert (first / "metrics.json").read_text() == "{}"  # the earlier run is untouched
     assert (tmp_path / LATEST).resolve() == second.resolve()
@@ -33,7 +37,7 @@ def test_latest_is_a_text_file_where_symlinks_fail(tmp_path: Path, monkeypatch: 
 
     monkeypatch.setattr(os, "symlink", no_symlinks)
     with new_run_folder(tmp_path, "room_tiny") as folder:
-        pass
+        folder.checkpoint.write_text("saved")
     assert (tmp_path / LATEST).read_text().strip() == folder.path.name
     assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
 
@@ -43,13 +47,18 @@ def test_a_named_folder_with_an_earlier_run_is_refused_unless_overwrite(tmp_path
     folder.mkdir()
     for name in ("metrics.json", "map.ply", "trace.json", "notes.txt"):
         (folder / name).write_text("earlier")
+    RunFolder(folder).mark()
     with pytest.raises(UserError, match=r"mine holds an earlier run \(metrics.json, map.ply, trace.json\).*--resume"):
         with new_run_folder(tmp_path, "room_tiny", "mine"):
             pass
     assert (folder / "metrics.json").read_text() == "earlier"
     with new_run_folder(tmp_path, "room_tiny", "mine", overwrite=True) as same:
         assert same.path == folder
-        assert sorted(p.name for p in folder.iterdir()) == [".lock", "notes.txt"]  # the user's own file stays
+        assert sorted(p.name for p in folder.iterdir()) == [
+            ".gsplatam-run",
+            ".lock",
+            "notes.txt",
+        ]  # the user's own file stays
 
 
 def test_overwrite_removes_the_recording_and_the_exports_too_and_nothing_of_the_users(tmp_path: Path) -> None:
@@ -59,12 +68,18 @@ def test_overwrite_removes_the_recording_and_the_exports_too_and_nothing_of_the_
     for name in [*written, "recording/notes.txt", "nerfstudio/depth/.frame_000001.png.x1.tmp"]:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_text("earlier")
+    RunFolder(folder).mark()
     with pytest.raises(UserError, match=r"\(metrics.json, recording, nerfstudio, map.splat, mesh.ply\)"):
         with new_run_folder(tmp_path, "room_tiny", "mine"):
             pass
     with new_run_folder(tmp_path, "room_tiny", "mine", overwrite=True):
         left = sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
-    assert left == [".lock", "recording", "recording/notes.txt"]  # the user's file, in the folder it needs
+    assert left == [
+        ".gsplatam-run",
+        ".lock",
+        "recording",
+        "recording/notes.txt",
+    ]  # the user's file, in the folder it needs
 
 
 def test_the_pointer_name_is_refused_as_a_run_name(tmp_path: Path) -> None:
@@ -77,6 +92,7 @@ def test_the_cli_refuses_to_run_into_an_earlier_run(replica_seq: Path, tmp_path:
     folder = tmp_path / "out" / "r"
     folder.mkdir(parents=True)
     (folder / "checkpoint.safetensors").write_bytes(b"an earlier run's")
+    RunFolder(folder).mark()
     code = main(["run", str(replica_seq), "--output", str(tmp_path / "out"), "--name", "r", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "holds an earlier run (checkpoint.safetensors)" in err[-1] and "--overwrite" in err[-1]
@@ -172,3 +188,74 @@ def test_resume_through_a_symlinked_lock_exits_2_and_leaves_the_target_whole(
     assert main(["run", "--resume", str(out / "r"), "--quiet"]) == 2
     assert "is a symbolic link, not a lock file" in capsys.readouterr().err.strip().splitlines()[-1]
     assert other.read_text() == "keep me\n"
+
+
+def test_overwrite_never_touches_a_folder_that_is_not_a_run_folder(tum_seq: Path, tmp_path: Path, capsys) -> None:
+    dataset = tmp_path / "datasets" / "fr1_x"
+    shutil.copytree(tum_seq, dataset)
+    before = {p: p.read_bytes() for p in dataset.rglob("*") if p.is_file()}
+    argv = ["run", str(tum_seq), "--output", str(dataset.parent), "--name", "fr1_x", "--overwrite", "--quiet"]
+    assert main(argv) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"{dataset} holds groundtruth.txt but is not a run folder of gsplatam" in line
+    assert {p: p.read_bytes() for p in dataset.rglob("*") if p.is_file() and p.name != ".lock"} == before
+
+
+def test_overwrite_acts_on_a_run_folder_from_before_the_marker(tmp_path: Path) -> None:
+    folder = tmp_path / "old"
+    folder.mkdir()
+    for name in ("config.toml", "frames.csv", "map.ply"):
+        (folder / name).write_text("earlier")
+    with new_run_folder(tmp_path, "room_tiny", "old", overwrite=True) as claimed:
+        assert sorted(p.name for p in folder.iterdir()) == [".gsplatam-run", ".lock"]
+        claimed.checkpoint.write_text("saved")
+    assert RunFolder(folder).is_run()
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "link elsewhere"])
+def test_a_latest_of_the_users_is_never_replaced(tmp_path: Path, kind: str, caplog: pytest.LogCaptureFixture) -> None:
+    latest = tmp_path / LATEST
+    if kind == "file":
+        latest.write_text("my shopping list\nmilk\n")
+    elif kind == "folder":
+        (latest / "inside").mkdir(parents=True)
+    else:
+        latest.symlink_to(tmp_path.parent)
+    with new_run_folder(tmp_path, "room_tiny") as claimed:
+        claimed.checkpoint.write_text("saved")
+    assert claimed.path.is_dir()  # the run went on
+    if kind == "file":
+        assert latest.read_text() == "my shopping list\nmilk\n"
+    elif kind == "folder":
+        assert (latest / "inside").is_dir() and not latest.is_symlink()
+    else:
+        assert latest.resolve() == tmp_path.parent.resolve()
+    assert f"{latest} is not gsplatam's pointer to the newest run" in caplog.text
+
+
+def test_a_run_that_saved_nothing_leaves_no_folder_and_latest_where_it_was(tmp_path: Path) -> None:
+    with new_run_folder(tmp_path, "room_tiny") as claimed:
+        claimed.checkpoint.write_text("saved")
+    earlier = (tmp_path / LATEST).resolve()
+    with pytest.raises(UserError, match="no frame"):
+        with new_run_folder(tmp_path, "room_tiny") as failed:
+            failed.config.write_text("x")
+            failed.frames_csv.write_text("index\n")
+            raise UserError("no frame was processed")
+    assert not failed.path.exists() and (tmp_path / LATEST).resolve() == earlier
+    named = tmp_path / "mine"
+    named.mkdir()
+    (named / "notes.txt").write_text("mine")
+    with new_run_folder(tmp_path, "room_tiny", "mine") as claimed:
+        claimed.config.write_text("x")
+    assert sorted(p.name for p in named.iterdir()) == ["notes.txt"]  # only what the run wrote went
+
+
+def test_a_run_whose_first_frame_fails_removes_its_folder(replica_seq: Path, tmp_path: Path, capsys) -> None:
+    dataset = tmp_path / "room"
+    shutil.copytree(replica_seq, dataset)
+    (dataset / "results" / "frame000000.jpg").write_bytes(b"truncated")
+    out = tmp_path / "out"
+    assert main(["run", str(dataset), "--output", str(out), "--name", "r", "--quiet"]) == 2
+    assert "frame000000.jpg" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (out / "r").exists() and not (out / LATEST).exists()
