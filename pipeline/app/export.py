@@ -1,23 +1,33 @@
 """The `export` command: a run folder -> a nerfstudio dataset, `.splat`, a full 3DGS PLY, a mesh
-or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`."""
+or a point cloud, from its checkpoint (map and keyframes) and `intrinsics.json`.
+
+Where an export may write is checked before anything is written: never onto a run's own files
+(`run_owning`); a file where a file is asked for, a folder for nerfstudio (absent, or an earlier
+nerfstudio export, which it replaces as a whole). The checkpoint is validated on reading. A
+nerfstudio export is written into a temporary folder beside its place and renamed into it, so it
+appears complete or not at all; an OS error (a full disk, no permission) is one line naming the
+path, exit code 2."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
 
 from pipeline.app.setup import rendering_on
-from pipeline.errors import DataError, UserError
+from pipeline.errors import DataError, OutputError, UserError
+from pipeline.files.folders import atomic_folder, make_folder
 from pipeline.geometry import invert_pose
 from pipeline.outputs.exports.full_ply import write_full_ply
 from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
+from pipeline.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
 from pipeline.outputs.exports.nerfstudio import write_nerfstudio
 from pipeline.outputs.exports.pointcloud import write_pointcloud
 from pipeline.outputs.exports.splat import write_splat
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_folder import RunFolder, run_owning
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.state import Checkpoint
@@ -41,11 +51,55 @@ def export_run(
         raise UserError(f"--voxel must be positive (metres), not {voxel_m}")
     folder = RunFolder.existing(run_dir)
     checkpoint, _ = folder.read_checkpoint()
-    target = output or folder.export(fmt)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    target = _checked_target(output or folder.export(fmt), fmt)
+    try:
+        return _write(folder, checkpoint, fmt, target, voxel_m, device)
+    except OSError as exc:
+        raise OutputError(f"cannot write {target}: {exc.strerror or exc}") from None
+
+
+def _checked_target(target: Path, fmt: str) -> Path:
+    """`target` (its folder resolved, and created) once the export may write there; UserError
+    naming it otherwise."""
+    target = target.parent.resolve() / target.name
+    owner = run_owning(target)
+    if owner is not None:
+        raise UserError(
+            f"{target} is one of the run folder {owner.path}'s own files: an export never writes onto a run; "
+            "choose another --output"
+        )
+    if fmt == "nerfstudio":
+        _check_nerfstudio_folder(target)
+    elif target.is_dir():
+        raise UserError(f"{target} is a folder: --output names the file to write")
+    make_folder(target.parent, "the export's folder")
+    return target
+
+
+def _check_nerfstudio_folder(target: Path) -> None:
+    """A nerfstudio export replaces only an earlier nerfstudio export (or an empty folder)."""
+    if target.exists() and not target.is_dir():
+        raise UserError(f"{target} is a file: a nerfstudio export is a folder, choose another --output")
+    if target.is_dir():
+        written = {path for pattern in NERFSTUDIO_FILES for path in target.glob(pattern)}
+        others = sorted(p for p in target.rglob("*") if not p.is_dir() and p not in written)
+        if others:
+            raise UserError(
+                f"{target} holds files that are not a nerfstudio export (e.g. {others[0]}): "
+                "an export replaces only an earlier export; choose another --output"
+            )
+
+
+def _write(
+    folder: RunFolder, checkpoint: Checkpoint, fmt: str, target: Path, voxel_m: float, device: torch.device | None
+) -> Exported:
+    """Write `fmt` of `checkpoint` (of the run in `folder`) to `target`."""
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
-        write_nerfstudio(target, checkpoint.keyframes, folder.read_intrinsics(), gaussians)
+        fill: Callable[[Path], None] = partial(
+            write_nerfstudio, keyframes=checkpoint.keyframes, camera=folder.read_intrinsics(), gaussians=gaussians
+        )
+        atomic_folder(target, fill)
         return Exported(target, f"{len(checkpoint.keyframes)} keyframes with depth, transforms.json")
     if fmt == "splat":
         write_splat(target, gaussians)
@@ -63,7 +117,7 @@ def export_run(
         _max_depth(checkpoint),
     )
     if len(mesh.triangles) == 0:
-        raise DataError(f"the map of {run_dir} gives an empty mesh at {voxel_m} m voxels")
+        raise DataError(f"the map of {folder.path} gives an empty mesh at {voxel_m} m voxels")
     write_mesh_ply(target, mesh)
     return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
 

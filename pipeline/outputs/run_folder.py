@@ -226,6 +226,17 @@ class RunFolder:
         atomic_write_text(self.profile, text)
 
 
+def run_owning(path: Path) -> RunFolder | None:
+    """The run folder (a run of this tool, or a folder holding a checkpoint) among `path`'s
+    parents of which `path` is one of its own files (`RunFolder.owns`), or None. The rule of what
+    may be written where: a run folder's own files are written by its run only."""
+    for parent in path.parents:
+        folder = RunFolder(parent)
+        if folder.owns(path) and (folder.is_run() or folder.checkpoint.is_file()):
+            return folder
+    return None
+
+
 def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:
     """Remove the files matching `written` (and temporary files) from `folder`, then the
     folders left empty: a folder holding anything else stays with it."""

@@ -231,3 +231,92 @@ def test_export_errors_name_the_folder_or_file(gt_run: Path, tmp_path: Path, cap
 def test_export_defaults_to_the_run_folder(gt_run: Path) -> None:
     exported = export_run(gt_run, "pointcloud")
     assert exported.path == gt_run / "pointcloud.ply" and exported.path.is_file()
+
+
+def _one_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err) and len(err) == 1
+    return err[0]
+
+
+def _state(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize(
+    "fmt, name",
+    [("splat", "map.ply"), ("ply", "checkpoint.safetensors"), ("pointcloud", "config.toml"),
+     ("pointcloud", ".gsplatam-run"), ("splat", "recording/rgb.txt"), ("pointcloud", "../run/frames.csv")],
+)  # fmt: skip
+def test_an_export_never_writes_onto_the_runs_own_files(
+    gt_run: Path, capsys: pytest.CaptureFixture[str], fmt: str, name: str
+) -> None:
+    before = _state(gt_run)
+    assert main(["export", str(gt_run), "--to", fmt, "--output", str(gt_run / name)]) == 2
+    line = _one_line(capsys)
+    assert f"of the run folder {gt_run.resolve()}'s own files: an export never writes onto a run" in line
+    assert _state(gt_run) == before
+
+
+@pytest.mark.parametrize("fmt", ["splat", "pointcloud", "nerfstudio"])
+def test_export_output_of_the_wrong_kind_is_one_line_naming_it(
+    gt_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str
+) -> None:
+    (tmp_path / "afile").write_text("mine")
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "adir" / "notes.txt").write_text("mine")
+    wrong = {"splat": tmp_path / "afile" / "m.splat", "pointcloud": tmp_path / "adir", "nerfstudio": tmp_path / "afile"}
+    said = {"splat": "is a file, not a folder", "pointcloud": "is a folder", "nerfstudio": "is a file"}
+    assert main(["export", str(gt_run), "--to", fmt, "--output", str(wrong[fmt])]) == 2
+    line = _one_line(capsys)
+    assert said[fmt] in line and str(tmp_path / ("adir" if fmt == "pointcloud" else "afile")) in line
+    assert (tmp_path / "afile").read_text() == "mine" and (tmp_path / "adir" / "notes.txt").read_text() == "mine"
+
+
+def test_nerfstudio_never_replaces_a_folder_of_the_users(
+    gt_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "adir" / "notes.txt").write_text("mine")
+    assert main(["export", str(gt_run), "--to", "nerfstudio", "--output", str(tmp_path / "adir")]) == 2
+    assert "holds files that are not a nerfstudio export" in _one_line(capsys)
+    assert [p.name for p in (tmp_path / "adir").iterdir()] == ["notes.txt"]
+
+
+def test_a_nerfstudio_export_on_a_full_disk_leaves_the_earlier_export_whole(
+    gt_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import os
+
+    out = tmp_path / "ns"
+    assert main(["export", str(gt_run), "--to", "nerfstudio", "--output", str(out)]) == 0
+    capsys.readouterr()
+    earlier = _state(out)
+
+    def full(*args: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr("pipeline.outputs.exports.nerfstudio.write_pointcloud", full)
+    assert main(["export", str(gt_run), "--to", "nerfstudio", "--output", str(out)]) == 2
+    assert _one_line(capsys) == f"gsplatam: error: cannot write {out}: No space left on device"
+    assert _state(out) == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["ns"]  # no half folder left
+    assert main(["export", str(gt_run), "--to", "nerfstudio", "--output", str(tmp_path / "new")]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ns"]
+
+
+@pytest.mark.parametrize("fmt", ["splat", "pointcloud", "ply"])
+def test_an_export_of_a_tampered_checkpoint_is_one_line(
+    gt_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str
+) -> None:
+    import shutil
+
+    from conftest import tamper_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(gt_run, run)
+    tamper_checkpoint(run / "checkpoint.safetensors", "gaussians.means", "one axis fewer")
+    before = _state(run)
+    assert main(["export", str(run), "--to", fmt]) == 2
+    assert "gaussians.means has shape" in _one_line(capsys)
+    assert _state(run) == before
