@@ -145,3 +145,28 @@ def test_a_first_frame_without_depth_is_refused_with_its_file(replica_seq: Path,
     assert main(["run", str(dataset), "--output", str(tmp_path / "out"), "--quiet"]) == 2
     line = _last_error(capsys)
     assert "failed on frame 0" in line and "depth000000.png holds no valid depth" in line
+
+
+@pytest.mark.parametrize("value", ["0", "-3"])
+def test_synth_refuses_a_size_that_is_not_positive(tmp_path: Path, capsys, value: str) -> None:
+    assert main(["synth", str(tmp_path / "seq"), "--frames", value, "--quiet"]) == 2
+    assert f"--frames must be positive, not {value}" in _last_error(capsys)
+    assert not (tmp_path / "seq").exists()
+
+
+def test_synth_refuses_a_folder_that_holds_anything_unless_overwrite(tmp_path: Path, capsys) -> None:
+    small = ["--frames", "2", "--width", "16", "--height", "12", "--quiet"]
+    seq = tmp_path / "seq"
+    assert main(["synth", str(seq), "--layout", "tum", *small]) == 0
+    before = sorted(p.name for p in seq.iterdir())
+    assert main(["synth", str(seq), "--layout", "replica", *small]) == 2
+    assert f"{seq} holds an earlier sequence: replace it with --overwrite" in _last_error(capsys)
+    assert sorted(p.name for p in seq.iterdir()) == before
+    assert main(["synth", str(seq), "--layout", "replica", "--overwrite", *small]) == 0
+    assert not (seq / "rgb.txt").exists() and (seq / "traj.txt").exists()  # replaced whole: one layout
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    assert main(["synth", str(mine), "--overwrite", *small]) == 2
+    assert "holds files that synth did not write" in _last_error(capsys)
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]

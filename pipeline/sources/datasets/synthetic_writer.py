@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from pipeline.config import SyntheticConfig
 from pipeline.errors import UserError
-from pipeline.files.folders import make_folder
+from pipeline.files.folders import atomic_folder, make_folder
 from pipeline.sources.datasets.replica import write_replica
 from pipeline.sources.datasets.synthetic import CPU, sequence
 from pipeline.sources.datasets.tum import write_tum
@@ -49,6 +49,34 @@ def write_synthetic(path: Path, config: SyntheticConfig, progress: bool = True, 
             path, frames, intrinsics, config.fps, config.depth_noise, config.holes, config.time_jitter, config.seed
         )
     (path / MANIFEST).write_text(json.dumps(asdict(config), indent=2) + "\n")
+    return count
+
+
+def write_synthetic_folder(
+    path: Path, config: SyntheticConfig, overwrite: bool = False, progress: bool = True, device: torch.device = CPU
+) -> int:
+    """`gsplatam synth`: the sequence into `path`, which must be absent or empty; with `overwrite`
+    it may also be an earlier sequence of synth (it holds MANIFEST), which is then replaced as a
+    whole (never mixed: a folder holding one layout's files and another's does not open right).
+    The sequence is written beside its place and renamed into it. -> frames written."""
+    if path.exists() and not path.is_dir():
+        raise UserError(f"the sequence's folder {path} is a file, not a folder")
+    if path.is_dir() and any(path.iterdir()):
+        if not (path / MANIFEST).is_file():
+            raise UserError(f"{path} holds files that synth did not write: choose an empty or new folder")
+        if not overwrite:
+            raise UserError(f"{path} holds an earlier sequence: replace it with --overwrite, or choose another folder")
+    make_folder(path.parent, "the sequence's parent folder")
+    count = 0
+
+    def fill(staged: Path) -> None:
+        nonlocal count
+        count = write_synthetic(staged, config, progress, device)
+
+    try:
+        atomic_folder(path, fill)
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
     return count
 
 
