@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -12,8 +13,14 @@ from pipeline.files.atomic import atomic_write_bytes
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
-    if not path.is_file():
+    try:
+        found = path.is_file()
+    except OSError as exc:  # a folder on the way that cannot be searched (another uid's)
+        raise DataError(f"cannot read the folder {path.parent} (for {path.name}): {exc.strerror}") from None
+    if not found:
         raise DataError(f"missing image: {path}")
+    if not os.access(path, os.R_OK):
+        raise DataError(f"cannot read {path}: permission denied")
     image = cv2.imread(str(path), flags)
     if image is None:
         raise DataError(f"unreadable image: {path}")

@@ -170,3 +170,17 @@ def test_synth_refuses_a_folder_that_holds_anything_unless_overwrite(tmp_path: P
     assert main(["synth", str(mine), "--overwrite", *small]) == 2
     assert "holds files that synth did not write" in _last_error(capsys)
     assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
+def test_a_dataset_whose_rgb_folder_is_unreadable_is_named(tum_seq: Path, tmp_path: Path) -> None:
+    dataset = tmp_path / "room"
+    shutil.copytree(tum_seq, dataset)
+    (dataset / "rgb").chmod(0)
+    try:
+        done = _without_root_override(["run", str(dataset), "--output", str(tmp_path / "out"), "--quiet"])
+    finally:
+        (dataset / "rgb").chmod(0o755)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"gsplatam: error: cannot read the folder {dataset / 'rgb'} (for " in done.stderr.strip().splitlines()[-1]
+    assert "Permission denied" in done.stderr.strip().splitlines()[-1]
