@@ -239,7 +239,10 @@ def validate(config: Config) -> None:
         (config.viewer.max_hz > 0 and config.viewer.map_every_s >= 0, "viewer rates must be positive"),
         (0 < config.live.retry_initial_s <= config.live.retry_max_s, "need 0 < live.retry_initial_s <= retry_max_s"),
         (config.live.busy_probe_s > 0, "live.busy_probe_s must be > 0"),
-        (config.live.connect_timeout_s > 0 and config.live.stall_timeout_s > 0, "live timeouts must be > 0"),
+        (
+            min(config.live.connect_timeout_s, config.live.stall_timeout_s, config.live.http_timeout_s) > 0,
+            "live timeouts must be > 0",
+        ),
         (0 <= config.live.dds_domain <= 232, "live.dds_domain must be a DDS domain id, 0 to 232"),
     ]
     for ok, message in checks:

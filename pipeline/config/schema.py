@@ -229,6 +229,7 @@ class LiveConfig:
     retry_max_s: float = 30.0  # longest back-off between reconnection attempts
     busy_probe_s: float = 1.0  # a busy phone (HTTP 403) is asked again this often, without back-off
     connect_timeout_s: float = 10.0  # signalling to first frame
+    http_timeout_s: float = 5.0  # Record3D: an HTTP reply of the phone slower than this is "no reply"
     stall_timeout_s: float = 10.0  # no frame for this long: the phone is gone, reconnect
     vp8_color: ColorEncoding = "bt709_full"  # Record3D: how VP8 frames (which signal no matrix) are decoded
     device_pose: PoseUse = "initial_guess"  # NeRFCapture: what the phone's pose is used for

@@ -39,7 +39,6 @@ from pipeline.sources.live.record3d_format import intrinsics_from_metadata, rgb_
 
 log = logging.getLogger("gsplatam")
 
-HTTP_TIMEOUT_S = 5.0
 VIDEO_CODECS = ("video/H264", "video/VP8")  # what the answer accepts, best first: H.264 is the app's own
 H264_COLOR: ColorEncoding = "bt601_limited"  # H.264 that signals no matrix (what aiortc's encoder sends)
 
@@ -147,7 +146,10 @@ async def _request(http: aiohttp.ClientSession, method: str, url: str, body: Any
     try:
         async with http.request(method, url, json=body) as response:
             return response.status, _reply_text(url, await response.read())
-    except (aiohttp.ClientConnectionError, TimeoutError) as exc:
+    except TimeoutError as exc:  # connected or not: nothing came back in time
+        limit = http.timeout.total
+        raise PhoneUnreachable(f"{url}: no reply within {limit:g} s (live.http_timeout_s)") from exc
+    except aiohttp.ClientConnectionError as exc:
         raise PhoneUnreachable(f"{url}: cannot connect ({exc.__class__.__name__}: {exc})") from exc
     except aiohttp.TooManyRedirects as exc:
         raise ProtocolError(f"{url}: redirected in a loop ({len(exc.history)} redirects)") from exc
@@ -202,7 +204,7 @@ class Record3DSession:
 
     async def open(self) -> None:
         self.on_stage(Stage.SIGNALLING)
-        timeout = aiohttp.ClientTimeout(total=HTTP_TIMEOUT_S)
+        timeout = aiohttp.ClientTimeout(total=self.config.http_timeout_s)
         async with aiohttp.ClientSession(timeout=timeout) as http:
             self.metadata = await _get_json(http, self.url + "/metadata")
             try:

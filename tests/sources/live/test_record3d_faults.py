@@ -22,7 +22,7 @@ from pipeline.sources.datasets.base import Dataset
 from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.sources.live.fake_record3d import FakePhone
-from pipeline.sources.live.record3d import ProtocolError, Record3DSession, phone_url
+from pipeline.sources.live.record3d import PhoneUnreachable, ProtocolError, Record3DSession, phone_url
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -195,3 +195,22 @@ def test_the_daemon_survives_every_malformed_reply_and_maps_into_one_map(
 
 def _rows(path: Path) -> list[str]:
     return [line for line in path.read_text().splitlines() if not line.startswith("#")]
+
+
+@pytest.mark.live
+def test_a_slow_phone_is_no_reply_within_the_configured_timeout() -> None:
+    async def slow_metadata(request: web.Request) -> web.StreamResponse:
+        await asyncio.sleep(0.6)
+        return web.json_response({"K": "not intrinsics"})
+
+    async def main() -> None:
+        runner, url = await _serve([web.get("/metadata", slow_metadata)])
+        try:
+            with pytest.raises(PhoneUnreachable, match=r"/metadata: no reply within 0.2 s \(live.http_timeout_s\)"):
+                await Record3DSession(url, LiveConfig(http_timeout_s=0.2)).open()
+            with pytest.raises(ProtocolError, match="/metadata"):  # waited for: the reply itself is read
+                await Record3DSession(url, LiveConfig(http_timeout_s=5.0)).open()
+        finally:
+            await runner.cleanup()
+
+    asyncio.run(main())
