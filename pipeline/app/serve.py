@@ -176,7 +176,7 @@ def serve(
                 report = execute_session(session, on_graph=add_status)
                 if recording is not None:
                     recording.close()  # complete before the final save, and before the viewer lingers
-                result = _save(session, report)
+                result = _save(session, report, recording.error if recording is not None else "")
             if result.metrics is not None:
                 session.linger(run_summary(result.metrics) + f"\n\nin {folder.path}")
             return result
@@ -186,8 +186,9 @@ def serve(
             session.close()
 
 
-def _save(session: Session, report: RuntimeReport) -> ServeResult:
-    """The final save (map, trajectory, checkpoint) and metrics.json."""
+def _save(session: Session, report: RuntimeReport, recording_error: str = "") -> ServeResult:
+    """The final save (map, trajectory, checkpoint) and metrics.json (with `recording_error`:
+    why the recording's last write failed, if it did)."""
     session.slam.finish(0)  # the frames mapping was given
     if session.slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
@@ -195,6 +196,7 @@ def _save(session: Session, report: RuntimeReport) -> ServeResult:
     session.saver.save_now(session.slam.checkpoint())
     poses = referenced_poses(session.log.results)  # NeRFCapture's with live.device_pose=groundtruth
     metrics = session.metrics(report, AteRecord.between(*poses) if poses is not None else None)
-    metrics = replace(metrics, interrupted=report.interrupted, write_error=session.saver.error or None)
+    write_error = "; ".join(e for e in (session.saver.error, recording_error) if e) or None
+    metrics = replace(metrics, interrupted=report.interrupted, write_error=write_error)
     session.folder.write_metrics(metrics)
     return ServeResult(session.folder, metrics)

@@ -77,3 +77,35 @@ def test_the_bar_shows_the_daemons_counters_without_computing_the_status() -> No
     graph = SimpleNamespace(dropped=lambda: {"source": 2, "uploaded": 1})
     counters = serve_module.bar_counters(session, graph)  # type: ignore[arg-type]
     assert counters == {"received": 7, "processed": 3, "dropped": 3, "age": "-"}
+
+
+@pytest.mark.slow
+def test_a_recording_on_a_full_disk_loses_neither_the_sessions_results_nor_what_it_recorded(
+    replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import json
+
+    from pipeline.sources.live import recording
+
+    real, written = recording.write_color, []
+
+    def full_after_two(path: Path, color: Any) -> None:
+        if len(written) >= 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        written.append(path)
+        real(path, color)
+
+    monkeypatch.setattr(recording, "write_color", full_after_two)
+    settings = [f"run.output={tmp_path}", "run.name=live", "run.device=cpu", "live.record=true",
+                "live.status_port=0", "tracking.iters=2", "mapping.iters=2"]  # fmt: skip
+    config = load_config("tiny", overrides=settings)
+    source = DatasetSource(open_dataset(DatasetConfig(path=str(replica_seq))))
+    with caplog.at_level(logging.INFO, "gsplatam"):
+        result = serve_module.serve(finish_config(config, CPU, LIVE_LAYOUT, live=True), source, progress=False)
+    assert result.metrics is not None and result.metrics.frames == 6  # SLAM went on
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "recording" in errors[0].getMessage()
+    folder = RunFolder(tmp_path / "live")
+    assert "No space left on device" in json.loads(folder.metrics.read_text())["write_error"]
+    assert folder.read_checkpoint()[0].frames_done == 6
+    assert len(open_dataset(DatasetConfig(path=str(folder.recording)))) == 2  # what was written whole: re-runnable

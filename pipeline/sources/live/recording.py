@@ -10,6 +10,11 @@ What is recorded is what SLAM receives: frames dropped before decoding (the live
 the newest) are not in it. The recorder's queue is bounded; when the disk falls behind, decoding
 waits for it (and the live queue drops older frames), so the recording never has gaps that SLAM
 did not also have.
+
+The listings are rewritten after the first frame, every LISTING_EVERY frames and at the end, so a
+recording cut short (a kill, a full disk) lists frames that were written whole and stays a
+dataset. A write that fails (a full disk) is reported once, until writes work again, and never
+ends the session: SLAM's own results come first (`error` says what failed).
 """
 
 from __future__ import annotations
@@ -17,13 +22,15 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pipeline.files.atomic import atomic_write_text
+from pipeline.files.folders import make_folder
 from pipeline.files.images import write_color, write_depth_png
 from pipeline.files.trajectory import write_tum_trajectory
 from pipeline.frame import Frame
@@ -47,8 +54,11 @@ class TumRecorder:
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         for sub in ("rgb", "depth"):
-            (folder / sub).mkdir(parents=True, exist_ok=True)
-        self.frames = 0
+            make_folder(folder / sub, "the recording's folder")
+        self.frames = 0  # written whole
+        self.listed = 0  # in the listings on disk (a re-run reads these)
+        self.error = ""  # why the last failed write failed; empty while none has
+        self._failing = False  # the last write failed (reported once, until one works again)
         self._rows: list[tuple[float, str, np.ndarray | None]] = []  # timestamp, file name, pose
         self._queue: queue.Queue[Frame | None] = queue.Queue(maxsize=QUEUE_FRAMES)
         self._thread = threading.Thread(target=self._work, name="recorder", daemon=True)
@@ -61,10 +71,24 @@ class TumRecorder:
 
     def _work(self) -> None:
         while (frame := self._queue.get()) is not None:
-            try:
-                self._write(frame)
-            except OSError as exc:
-                log.error("recording to %s failed on frame %d: %s", self.folder, frame.index, exc)
+            self._attempt(f"frame {frame.index}", partial(self._write, frame))
+
+    def _attempt(self, what: str, write: Callable[[], None]) -> None:
+        """`write()`; a failure (a full disk) is logged once, until a write works again."""
+        try:
+            write()
+        except OSError as exc:
+            if not self._failing:
+                log.error(
+                    "recording to %s failed (%s): %s; the session goes on, the recording keeps the frames listed",
+                    self.folder, what, exc.strerror or exc,
+                )  # fmt: skip
+            self.error = f"recording to {self.folder} failed ({what}): {exc.strerror or exc}"
+            self._failing = True
+            return
+        if self._failing:
+            log.info("recording to %s works again", self.folder)
+            self._failing = False
 
     def _write(self, frame: Frame) -> None:
         name = f"{frame.index:06d}.png"
@@ -75,7 +99,7 @@ class TumRecorder:
         pose = frame.c2w_gt if frame.c2w_gt is not None else frame.c2w_prior
         self._rows.append((frame.timestamp, name, pose))
         self.frames += 1
-        if self.frames % LISTING_EVERY == 0:
+        if self.frames == 1 or self.frames % LISTING_EVERY == 0:
             self._write_listings()
 
     def _write_listings(self) -> None:
@@ -88,17 +112,18 @@ class TumRecorder:
         if posed:
             times, poses = zip(*posed)
             write_tum_trajectory(self.folder / POSES, np.array(times), np.stack(poses))
+        self.listed = len(rows)
 
     def close(self) -> None:
-        """Write what is queued and the listings; safe to call twice."""
+        """Write what is queued and the listings (a failure is logged, never raised); safe to call twice."""
         if self._closed:
             return
         self._closed = True
         self._queue.put(None)
         self._thread.join()
         if self._rows:
-            self._write_listings()
-            log.info("recorded %d frames to %s", self.frames, self.folder)
+            self._attempt("the listings", self._write_listings)
+            log.info("recorded %d frames to %s", self.listed, self.folder)
 
 
 class RecordingSource:
@@ -123,6 +148,11 @@ class RecordingSource:
         if frame is not None:
             self.recorder.put(frame)
         return frame
+
+    @property
+    def error(self) -> str:
+        """Why the recording's last failed write failed; empty while none has."""
+        return self.recorder.error
 
     def close(self) -> None:
         self.recorder.close()

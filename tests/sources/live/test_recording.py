@@ -78,7 +78,62 @@ def test_listings_are_written_while_recording_so_a_killed_session_keeps_its_fram
     for i in range(LISTING_EVERY):
         source.recorder.put(replace(frames[i % len(frames)], index=i, timestamp=i / 30))
     deadline = time.monotonic() + 60
-    while not listing.exists() and time.monotonic() < deadline:
+    while source.recorder.listed < LISTING_EVERY and time.monotonic() < deadline:
         time.sleep(0.05)
     assert sum(not line.startswith("#") for line in listing.read_text().splitlines()) == LISTING_EVERY
     source.close()
+
+
+def test_a_full_disk_is_reported_once_and_the_recording_lists_what_was_written_whole(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import errno
+    import logging
+    import os
+
+    from pipeline.sources.live import recording
+
+    real = recording.write_color
+    written: list[Path] = []
+
+    def full_after_two(path: Path, color: np.ndarray) -> None:
+        if len(written) >= 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        written.append(path)
+        real(path, color)
+
+    monkeypatch.setattr(recording, "write_color", full_after_two)
+    recorder = recording.TumRecorder(tmp_path / "recording")
+    with caplog.at_level(logging.INFO, "gsplatam"):
+        for i in range(6):
+            recorder.put(replace(frames[0], index=i, timestamp=i / 30))
+        recorder.close()  # the listings of the frames written whole; nothing raised
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "No space left on device" in errors[0].getMessage()
+    assert "No space left on device" in recorder.error and recorder.listed == 2
+    again = open_dataset(DatasetConfig(path=str(tmp_path / "recording")))
+    assert len(again) == 2 and all(again.decode(ref) is not None for ref in again.refs)
+
+
+def test_a_recording_whose_listing_cannot_be_written_at_the_end_keeps_the_last_listing(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import os
+
+    from pipeline.sources.live import recording
+
+    recorder = recording.TumRecorder(tmp_path / "recording")
+    recorder.put(replace(frames[0], index=0, timestamp=0.0))
+    deadline = time.monotonic() + 60
+    while recorder.listed == 0 and time.monotonic() < deadline:  # the first frame's listing
+        time.sleep(0.05)
+
+    def full(*args: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(recording, "atomic_write_text", full)
+    recorder.put(replace(frames[1], index=1, timestamp=1 / 30))
+    recorder.close()
+    assert "the listings" in recorder.error
+    assert len(open_dataset(DatasetConfig(path=str(tmp_path / "recording")))) == 1
