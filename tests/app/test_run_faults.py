@@ -111,7 +111,7 @@ def test_a_full_disk_mid_run_stops_it_and_says_so(
 @pytest.mark.slow
 @pytest.mark.parametrize("when", ["evaluation", "writing"])
 def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
-    replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
+    replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys, when: str
 ) -> None:
     import pipeline.app.run as run_module
     from pipeline.outputs.periodic_save import PeriodicSave
@@ -134,6 +134,7 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
     argv = ["run", str(replica_seq), "--output", str(out), "--name", "s", "--set", "run.eval_every=2", *QUICK]
     assert main(argv) == 0
     folder = out / "s"
+    assert f"interrupted: continue with  gsplatam run --resume {folder}" in capsys.readouterr().out
     metrics = _metrics(folder)
     assert metrics["frames"] == 6 and metrics["interrupted"] is True and _frames_in(folder)[:2] == (6, 6)
     evaluated = 1 if when == "evaluation" else 0  # a signal while writing: the files, then no evaluation

@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
     if result.metrics is not None:
         print(format_table(result.metrics))
         print(files_and_next_steps(result.folder))
+        if result.metrics.interrupted:
+            print(f"interrupted: continue with  gsplatam run --resume {result.folder.path}")
     return 0
 
 
