@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
@@ -131,7 +132,9 @@ class RunFolder:
         they put into their folders, temporary files left by a kill), and nothing else."""
         for name in [self.config.name, *self.earlier_run()]:
             path = self.path / name
-            if name in FILLED_FOLDERS:
+            if path.is_symlink():  # the link goes, never what it points at
+                path.unlink()
+            elif name in FILLED_FOLDERS:
                 _remove_filled(path, FILLED_FOLDERS[name])
             elif path.is_file():
                 path.unlink()
@@ -153,7 +156,8 @@ class RunFolder:
         `keep_frames` on resume)."""
         if self._frames_file is None:
             new = not self.frames_csv.exists() or self.frames_csv.stat().st_size == 0
-            self._frames_file = open(self.frames_csv, "a", newline="")
+            fd = os.open(self.frames_csv, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            self._frames_file = open(fd, "a", newline="")  # never through a link
             if new:
                 csv.writer(self._frames_file).writerow(COLUMNS)
         csv.writer(self._frames_file).writerow(row.cells())
@@ -242,11 +246,17 @@ def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:
     folders left empty: a folder holding anything else stays with it."""
     for pattern in (*written, "**/.*.tmp"):
         for path in folder.glob(pattern):
-            if path.is_file():
+            if path.is_file() and not _through_link(path, folder):
                 path.unlink()
     for path in sorted((p for p in folder.rglob("*") if p.is_dir()), reverse=True) + [folder]:
         with contextlib.suppress(OSError):
             path.rmdir()
+
+
+def _through_link(path: Path, folder: Path) -> bool:
+    """Whether `path` lies in `folder` only through a symlinked folder (removing it would reach
+    outside the run folder)."""
+    return any((folder / part).is_symlink() for part in path.relative_to(folder).parents if part.parts)
 
 
 @contextlib.contextmanager

@@ -259,3 +259,33 @@ def test_a_run_whose_first_frame_fails_removes_its_folder(replica_seq: Path, tmp
     assert main(["run", str(dataset), "--output", str(out), "--name", "r", "--quiet"]) == 2
     assert "frame000000.jpg" in capsys.readouterr().err.strip().splitlines()[-1]
     assert not (out / "r").exists() and not (out / LATEST).exists()
+
+
+def test_overwrite_follows_no_link_out_of_the_run_folder(tmp_path: Path) -> None:
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "rgb").mkdir(parents=True)
+    (elsewhere / "rgb" / "000000.png").write_text("a user's image")
+    (elsewhere / "rgb.txt").write_text("a user's listing")
+    folder = tmp_path / "out" / "mine"
+    (folder / "recording").mkdir(parents=True)
+    (folder / "recording" / "rgb").symlink_to(elsewhere / "rgb")
+    (folder / "nerfstudio").symlink_to(elsewhere)
+    (folder / "map.ply").symlink_to(elsewhere / "rgb.txt")
+    RunFolder(folder).mark()
+    with new_run_folder(tmp_path / "out", "room_tiny", "mine", overwrite=True):
+        pass
+    assert (elsewhere / "rgb" / "000000.png").read_text() == "a user's image"
+    assert (elsewhere / "rgb.txt").read_text() == "a user's listing"
+    assert not (folder / "nerfstudio").exists() and not (folder / "map.ply").is_symlink()
+
+
+def test_frames_csv_is_never_appended_through_a_link(tmp_path: Path) -> None:
+    from pipeline.outputs.frame_row import COLUMNS
+
+    other = tmp_path / "other.txt"
+    other.write_text("mine\n")
+    folder = RunFolder(tmp_path)
+    folder.frames_csv.symlink_to(other)
+    with pytest.raises(OSError):
+        folder.append_frame(type("Row", (), {"cells": lambda self: ["0"] * len(COLUMNS)})())  # type: ignore[arg-type]
+    assert other.read_text() == "mine\n"
