@@ -8,6 +8,7 @@ float32 metres), so a checkpoint of hundreds of keyframes stays a plain tensor f
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,8 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
 def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
     """-> (the checkpoint, the run it was written by). Raises DataError naming
     the file for anything that is not a complete checkpoint of this format."""
+    if path.is_file() and not os.access(path, os.R_OK):  # safetensors reads it as missing
+        raise DataError(f"cannot read {path}: permission denied")
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}

@@ -184,3 +184,14 @@ def test_a_dataset_whose_rgb_folder_is_unreadable_is_named(tum_seq: Path, tmp_pa
     assert "Traceback" not in done.stderr
     assert f"gsplatam: error: cannot read the folder {dataset / 'rgb'} (for " in done.stderr.strip().splitlines()[-1]
     assert "Permission denied" in done.stderr.strip().splitlines()[-1]
+
+
+def test_an_unreadable_checkpoint_is_named_as_unreadable(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    checkpoint = run / "checkpoint.safetensors"
+    checkpoint.write_bytes(b"x")
+    checkpoint.chmod(0)
+    done = _without_root_override(["export", str(run), "--to", "splat"])
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == f"gsplatam: error: cannot read {checkpoint}: permission denied"
