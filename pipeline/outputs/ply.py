@@ -118,6 +118,8 @@ def read_ply(path: Path) -> Gaussians:
             f"{path} is truncated: its header announces {count} Gaussians, the file holds {body // layout.itemsize}"
         )
     table = np.frombuffer(raw, dtype=layout, count=count, offset=end + len(b"end_header\n"))
+    if not all(np.isfinite(table[name]).all() for name in PROPERTIES if name in names):
+        raise DataError(f"{path} holds NaN or infinite values: not a map a run saved")
 
     def cols(*keys: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=1))

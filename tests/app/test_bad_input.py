@@ -115,6 +115,7 @@ def _ply(path: Path) -> Path:
         (lambda raw: raw.replace(b"element vertex 20\n", b""), "no 'element vertex' line"),
         (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "malformed header"),
         (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "only binary little-endian"),
+        (lambda raw: raw[:-4] + np.float32(np.nan).tobytes(), "holds NaN or infinite values"),
     ],
 )
 def test_a_truncated_or_malformed_ply_is_named_by_view(damage, message: str, tmp_path: Path, capsys) -> None:
