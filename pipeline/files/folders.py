@@ -29,7 +29,7 @@ def atomic_folder(path: Path, fill: Callable[[Path], None]) -> None:
     then takes `path`'s place (replacing an earlier folder there), so the folder appears complete
     or not at all; if `fill` fails (a full disk) the temporary folder goes and `path` stays as it was."""
     tag = f"{os.getpid()}.{secrets.token_hex(4)}"
-    staged, earlier = path.with_name(f".{path.name}.{tag}.tmp"), path.with_name(f".{path.name}.{tag}.old")
+    staged, earlier = path.with_name(f".{path.name}.{tag}.tmp"), path.with_name(f".{path.name}.{tag}.old.tmp")
     staged.mkdir()  # the umask's mode, as any folder
     try:
         fill(staged)

@@ -7,6 +7,7 @@ import contextlib
 import csv
 import json
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
@@ -138,9 +139,12 @@ class RunFolder:
                 _remove_filled(path, FILLED_FOLDERS[name])
             elif path.is_file():
                 path.unlink()
-        for path in self.path.glob(".*.tmp"):
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()
+        for path in self.path.glob(".*.tmp"):  # files, and folders of a killed multi-file export
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
 
     def write_config(self, config: Config) -> None:
         with _writing(self.config):

@@ -65,7 +65,8 @@ def test_overwrite_removes_the_recording_and_the_exports_too_and_nothing_of_the_
     folder = tmp_path / "mine"
     written = ["metrics.json", "map.splat", "mesh.ply", "recording/rgb.txt", "recording/rgb/000000.png",
                "recording/depth/000000.png", "nerfstudio/transforms.json", "nerfstudio/images/frame_000000.png"]  # fmt: skip
-    for name in [*written, "recording/notes.txt", "nerfstudio/depth/.frame_000001.png.x1.tmp"]:
+    for name in [*written, "recording/notes.txt", "nerfstudio/depth/.frame_000001.png.x1.tmp",
+                 ".nerfstudio.1.ab.tmp/images/frame_000000.png"]:  # fmt: skip
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_text("earlier")
     RunFolder(folder).mark()
