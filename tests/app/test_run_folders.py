@@ -281,12 +281,12 @@ def test_overwrite_follows_no_link_out_of_the_run_folder(tmp_path: Path) -> None
 
 
 def test_frames_csv_is_never_appended_through_a_link(tmp_path: Path) -> None:
-    from pipeline.outputs.frame_row import COLUMNS
+    from pipeline.outputs.frame_row import FrameRow
 
     other = tmp_path / "other.txt"
     other.write_text("mine\n")
     folder = RunFolder(tmp_path)
     folder.frames_csv.symlink_to(other)
     with pytest.raises(OSError):
-        folder.append_frame(type("Row", (), {"cells": lambda self: ["0"] * len(COLUMNS)})())  # type: ignore[arg-type]
+        folder.append_frame(FrameRow(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0.0, 0.0, "", "", False, 0, None, None))
     assert other.read_text() == "mine\n"
