@@ -258,3 +258,23 @@ def test_stage_times_merge_the_host_and_device_rows_of_a_range() -> None:
     ]
     times = stage_times(rows)
     assert times == {"mapping": {"count": 60, "cpu_ms": 4187.0, "device_ms": 3998.0}}
+
+
+def test_output_into_a_closed_pipe_ends_quietly_with_141() -> None:
+    """`gsplatam config | head -1`, the reader gone before the first write: no traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "pipeline", "config"], stdout=write_end, stderr=subprocess.PIPE, text=True, cwd=ROOT
+        )
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (141, "")
+
+
+def test_a_shell_pipeline_into_head_prints_the_first_line_only() -> None:
+    shell = f"set -o pipefail; {sys.executable} -m pipeline config | head -1"
+    done = subprocess.run(["bash", "-c", shell], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode in (0, 141) and len(done.stdout.splitlines()) == 1
+    assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr
