@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import pytest
 
@@ -209,3 +210,14 @@ def test_the_config_command_shows_one_key_and_names_a_wrong_one(capsys: pytest.C
     assert "unknown config key 'tracking.nope'" in capsys.readouterr().err
     assert main(["config", "trackin.method"]) == 2
     assert "unknown config section 'trackin'" in capsys.readouterr().err
+
+
+def test_strings_that_need_toml_escapes_round_trip_through_config_toml(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    config = preset_config("tiny")
+    odd = 'a "room"\twith\nlines \\ and \x07'
+    config = replace(config, dataset=replace(config.dataset, path=odd))
+    path = tmp_path / "config.toml"
+    path.write_text(to_toml(config))
+    assert load_config(config_file=path).dataset.path == odd
