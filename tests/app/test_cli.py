@@ -278,3 +278,24 @@ def test_a_shell_pipeline_into_head_prints_the_first_line_only() -> None:
     done = subprocess.run(["bash", "-c", shell], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode in (0, 141) and len(done.stdout.splitlines()) == 1
     assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr
+
+
+@pytest.mark.parametrize("verbose", [True, False], ids=["-v", "default"])
+def test_verbose_logs_each_frames_stage_times_tracker_verdict_and_the_saves(
+    verbose: bool, replica_seq: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import logging
+
+    argv = ["run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path), "--quiet", "--set", "dataset.end=3"]
+    try:
+        assert main(argv + (["-v"] if verbose else [])) == 0
+    finally:
+        logging.getLogger("gsplatam").setLevel(logging.NOTSET)
+    debug = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and r.name == "gsplatam"]
+    if not verbose:
+        assert debug == []
+        return
+    frames = [line for line in debug if line.startswith("frame ")]
+    assert [line.split(":")[0] for line in frames] == ["frame 0", "frame 1", "frame 2"]
+    assert all("tracking " in line and " ms" in line and "tracker: ok" in line for line in frames[1:]), frames
+    assert any(line.startswith("saving trajectory, map and checkpoint of 3 frames") for line in debug)
