@@ -43,6 +43,14 @@ def export_run(
     checkpoint, _ = folder.read_checkpoint()
     target = output or folder.export(fmt)
     target.parent.mkdir(parents=True, exist_ok=True)
+    exported = _write(fmt, folder, checkpoint, target, voxel_m, device)
+    folder.record_export(fmt, exported.path, checkpoint)
+    return exported
+
+
+def _write(
+    fmt: str, folder: RunFolder, checkpoint: Checkpoint, target: Path, voxel_m: float, device: torch.device | None
+) -> Exported:
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
         write_nerfstudio(target, checkpoint.keyframes, folder.read_intrinsics(), gaussians)
@@ -63,7 +71,7 @@ def export_run(
         _max_depth(checkpoint),
     )
     if len(mesh.triangles) == 0:
-        raise DataError(f"the map of {run_dir} gives an empty mesh at {voxel_m} m voxels")
+        raise DataError(f"the map of {folder.path} gives an empty mesh at {voxel_m} m voxels")
     write_mesh_ply(target, mesh)
     return Exported(target, f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({voxel_m} m voxels)")
 

@@ -121,12 +121,19 @@ def format_table(metrics: RunMetrics) -> str:
 def files_and_next_steps(folder: RunFolder) -> str:
     """The end of a run's output: every file in its run folder, then the commands that take it further."""
     root = folder.path
+    exports = folder.exports_made()
+    derived = {folder.exports_record.name, *FORMATS.values(), *(str(e.get("path")) for e in exports.values())}
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file() and not p.name.startswith("."))
+    files = [p for p in files if p.parts[0] not in derived and str(p) not in derived]
     shown = [str(p) for p in files if len(p.parts) == 1]
     shown += sorted(
         {f"{p.parts[0]}/ ({sum(q.parts[0] == p.parts[0] for q in files)} files)" for p in files if len(p.parts) > 1}
     )
-    return "\n".join([f"outputs: {root}/", *(f"  {name}" for name in shown), "next:", *next_steps(folder)])
+    lines = [f"outputs: {root}/", *(f"  {name}" for name in shown)]
+    if exports:
+        lines.append(f"exports made before this run ({folder.exports_record.name}):")
+        lines += [f"  {e.get('path')}: {e.get('stale') or 'of this map'}" for e in exports.values()]
+    return "\n".join([*lines, "next:", *next_steps(folder)])
 
 
 def next_steps(folder: RunFolder) -> list[str]:
