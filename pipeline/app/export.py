@@ -14,7 +14,7 @@ from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
 from pipeline.outputs.exports.full_ply import write_full_ply
 from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
-from pipeline.outputs.exports.nerfstudio import write_nerfstudio
+from pipeline.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
 from pipeline.outputs.exports.pointcloud import write_pointcloud
 from pipeline.outputs.exports.splat import write_splat
 from pipeline.outputs.run_folder import RunFolder
@@ -32,8 +32,19 @@ class Exported:
     summary: str  # what it holds, one line
 
 
+@dataclass(frozen=True)
+class NerfstudioOptions:
+    frames: Frames = "keyframes"  # keyframes, or every frame tracked well
+    size: Size = "working"  # SLAM's working size, or the dataset's own
+
+
 def export_run(
-    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: torch.device | None = None
+    run_dir: Path,
+    fmt: str,
+    output: Path | None = None,
+    voxel_m: float = 0.02,
+    device: torch.device | None = None,
+    nerfstudio: NerfstudioOptions = NerfstudioOptions(),
 ) -> Exported:
     """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: where the
     run folder keeps that export); a mesh is rendered on `device` (None: the CPU)."""
@@ -43,18 +54,27 @@ def export_run(
     checkpoint, _ = folder.read_checkpoint()
     target = output or folder.export(fmt)
     target.parent.mkdir(parents=True, exist_ok=True)
-    exported = _write(fmt, folder, checkpoint, target, voxel_m, device)
+    exported = _write(fmt, folder, checkpoint, target, voxel_m, device, nerfstudio)
     folder.record_export(fmt, exported.path, checkpoint)
     return exported
 
 
 def _write(
-    fmt: str, folder: RunFolder, checkpoint: Checkpoint, target: Path, voxel_m: float, device: torch.device | None
+    fmt: str,
+    folder: RunFolder,
+    checkpoint: Checkpoint,
+    target: Path,
+    voxel_m: float,
+    device: torch.device | None,
+    nerfstudio: NerfstudioOptions,
 ) -> Exported:
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
-        write_nerfstudio(target, checkpoint.keyframes, folder.read_intrinsics(), gaussians)
-        return Exported(target, f"{len(checkpoint.keyframes)} keyframes with depth, transforms.json")
+        working = folder.read_intrinsics()
+        views, camera = views_of(checkpoint, folder.read_config(), working, nerfstudio.frames, nerfstudio.size)
+        count = write_nerfstudio(target, views, camera, gaussians)
+        what = "keyframes" if nerfstudio.frames == "keyframes" else "frames"
+        return Exported(target, f"{count} {what} at {camera.width}x{camera.height} with depth, transforms.json")
     if fmt == "splat":
         write_splat(target, gaussians)
         return Exported(target, f"{len(gaussians):,} Gaussians, 32 bytes each")
