@@ -12,6 +12,7 @@ import torch
 from pipeline.app.setup import rendering_on
 from pipeline.errors import DataError, UserError
 from pipeline.geometry import invert_pose
+from pipeline.outputs.exports.compressed_ply import write_compressed_ply
 from pipeline.outputs.exports.full_ply import write_full_ply
 from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
 from pipeline.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
@@ -81,6 +82,11 @@ def _write(
     if fmt == "ply":
         write_full_ply(target, gaussians, folder.read_config().gaussians.kind)
         return Exported(target, f"{len(gaussians):,} Gaussians with normals and f_rest_* (zeros)")
+    if fmt == "compressed-ply":
+        write_compressed_ply(target, gaussians)
+        return Exported(
+            target, f"{len(gaussians):,} Gaussians (those over 1/255 opacity), 16 bytes each, chunks of 256"
+        )
     if fmt == "pointcloud":
         write_pointcloud(target, gaussians)
         return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")
