@@ -18,6 +18,7 @@ from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
 from pipeline.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
 from pipeline.outputs.exports.pointcloud import write_pointcloud
 from pipeline.outputs.exports.splat import write_splat
+from pipeline.outputs.exports.spz import write_spz
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
@@ -87,6 +88,9 @@ def _write(
         return Exported(
             target, f"{len(gaussians):,} Gaussians (those over 1/255 opacity), 16 bytes each, chunks of 256"
         )
+    if fmt == "spz":
+        write_spz(target, gaussians)
+        return Exported(target, f"{len(gaussians):,} Gaussians, SPZ version 3 (gzip)")
     if fmt == "pointcloud":
         write_pointcloud(target, gaussians)
         return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")

@@ -23,7 +23,7 @@ from pipeline.outputs.run_metrics import RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.stages.frame_log import FrameLog
 
-EXPORT_NEEDS = {"mesh": "open3d"}  # export format -> the module it needs (an extra's)
+EXPORT_NEEDS = {"mesh": "open3d", "spz": "gsply"}  # export format -> the module it needs (an extra's)
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
@@ -156,9 +156,16 @@ def _gsplatam() -> str:
     return "gsplatam" if shutil.which("gsplatam") else f"{shlex.quote(sys.executable)} -m pipeline"
 
 
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ImportError:  # a finder that refuses the module outright
+        return False
+
+
 def _needing(module: str | None, command: str) -> str:
     """`command`, after the pip command of the extra that brings `module` when it is missing."""
-    if module is None or importlib.util.find_spec(module) is not None:
+    if module is None or _installed(module):
         return command
     return f"pip install 'gsplatam[{EXTRA_OF_MODULE[module]}]' && {command}"
 

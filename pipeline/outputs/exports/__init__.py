@@ -1,5 +1,5 @@
 """Writers that take a run elsewhere, one module per format: nerfstudio, .splat, full 3DGS PLY,
-compressed PLY, mesh, point cloud."""
+compressed PLY, SPZ, mesh, point cloud."""
 
 # format -> where `gsplatam export` writes it by default, inside the run folder
 FORMATS: dict[str, str] = {
@@ -7,6 +7,7 @@ FORMATS: dict[str, str] = {
     "splat": "map.splat",
     "ply": "map_3dgs.ply",
     "compressed-ply": "map.compressed.ply",
+    "spz": "map.spz",
     "mesh": "mesh.ply",
     "pointcloud": "pointcloud.ply",
 }
