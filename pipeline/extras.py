@@ -14,6 +14,7 @@ EXTRA_OF_MODULE = {
     "ray": "cluster",
     "rerun": "rerun",
     "gtsam": "loops",
+    "gsply": "spz",
 }
 
 

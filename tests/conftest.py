@@ -7,15 +7,21 @@ from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from pipeline.config import SyntheticConfig
+from pipeline.config import DatasetConfig, GaussianConfig, SyntheticConfig, load_config
+from pipeline.outputs.intrinsics import CameraIntrinsics, write_intrinsics
+from pipeline.outputs.run_description import RunDescription
+from pipeline.outputs.run_folder import RunFolder
 from pipeline.render.types import Gaussians
+from pipeline.slam.gaussian_map import concatenate, seed_gaussians
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.state import BackendState, Checkpoint, FrontendState
+from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # one of two workers on two cores: one thread each,
@@ -115,3 +121,35 @@ def tamper_checkpoint(path: Path, name: str, change: str) -> None:
     else:
         tensors[name] = tensor[:-1].contiguous()  # "one row fewer"
     save_file(tensors, str(path), meta)
+
+
+GT_ROOM = SyntheticConfig(frames=6, width=64, height=48, seed=5)
+GT_KEYFRAMES = (0, 3, 5)
+
+
+def write_gt_run(root: Path) -> Path:
+    """A run folder whose map is seeded from the room's exact depth at its exact poses (no SLAM):
+    exports are checked against known geometry, not against tracking error."""
+    write_synthetic(root / "room", GT_ROOM, progress=False)
+    dataset = open_dataset(DatasetConfig(path=str(root / "room")))
+    frames = [dataset.decode(ref) for ref in dataset.refs]
+    keyframes, gaussians = [], None
+    for frame in frames:
+        color = torch.from_numpy(frame.color).float() / 255
+        depth, c2w = torch.from_numpy(frame.depth), torch.from_numpy(frame.c2w_gt).float()
+        k = torch.from_numpy(frame.intrinsics).float()
+        if frame.index in GT_KEYFRAMES:
+            keyframes.append(Keyframe.of(frame.index, color, depth, c2w))
+        if frame.index in (0, len(frames) - 1):
+            seeds = seed_gaussians(color, depth, k, c2w, depth > 0, GaussianConfig())
+            gaussians = seeds if gaussians is None else concatenate(gaussians, seeds)
+    assert gaussians is not None
+    checkpoint = make_checkpoint(
+        gaussians, keyframes, torch.stack([torch.from_numpy(f.c2w_gt).float() for f in frames])
+    )
+    (root / "run").mkdir()
+    folder = RunFolder(root / "run")
+    folder.write_config(replace(load_config("tiny"), dataset=DatasetConfig(path=str(root / "room"))))
+    folder.write_state(checkpoint, RunDescription("room"), np.array([r.timestamp for r in dataset.refs]), None)
+    write_intrinsics(folder.intrinsics, CameraIntrinsics.of_matrix(frames[0].intrinsics, GT_ROOM.width, GT_ROOM.height))
+    return folder.path

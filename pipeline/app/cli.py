@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 from types import FrameType
@@ -54,6 +55,7 @@ COMMANDS: dict[str, Command] = {
 }
 
 log = logging.getLogger("gsplatam")
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # 141: what a shell reports for a writer whose reader went away
 
 
 class Parser(argparse.ArgumentParser):
@@ -99,6 +101,19 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command of `argv` -> its exit code. Output piped into a reader that stops early
+    (`gsplatam config | head -1`) ends the command quietly with EXIT_BROKEN_PIPE."""
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # here, not at interpreter exit, where it would print a traceback
+        return code
+    except BrokenPipeError:
+        # Python's advice (signal module docs): point stdout at devnull so the exit's flush is quiet.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     _configure_logging(args)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.

@@ -10,9 +10,8 @@ path, exit code 2."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -21,12 +20,14 @@ from pipeline.app.setup import rendering_on
 from pipeline.errors import DataError, OutputError, UserError
 from pipeline.files.folders import atomic_folder, make_folder
 from pipeline.geometry import invert_pose
+from pipeline.outputs.exports.compressed_ply import write_compressed_ply
 from pipeline.outputs.exports.full_ply import write_full_ply
 from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
 from pipeline.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
-from pipeline.outputs.exports.nerfstudio import write_nerfstudio
+from pipeline.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
 from pipeline.outputs.exports.pointcloud import write_pointcloud
 from pipeline.outputs.exports.splat import write_splat
+from pipeline.outputs.exports.spz import write_spz
 from pipeline.outputs.run_folder import RunFolder, run_owning
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
@@ -42,8 +43,19 @@ class Exported:
     summary: str  # what it holds, one line
 
 
+@dataclass(frozen=True)
+class NerfstudioOptions:
+    frames: Frames = "keyframes"  # keyframes, or every frame tracked well
+    size: Size = "working"  # SLAM's working size, or the dataset's own
+
+
 def export_run(
-    run_dir: Path, fmt: str, output: Path | None = None, voxel_m: float = 0.02, device: torch.device | None = None
+    run_dir: Path,
+    fmt: str,
+    output: Path | None = None,
+    voxel_m: float = 0.02,
+    device: torch.device | None = None,
+    nerfstudio: NerfstudioOptions = NerfstudioOptions(),
 ) -> Exported:
     """Write `fmt` (a key of FORMATS) of the run in `run_dir` to `output` (default: where the
     run folder keeps that export); a mesh is rendered on `device` (None: the CPU)."""
@@ -53,9 +65,11 @@ def export_run(
     checkpoint, _ = folder.read_checkpoint()
     target = _checked_target(output or folder.export(fmt), fmt)
     try:
-        return _write(folder, checkpoint, fmt, target, voxel_m, device)
+        exported = _write(fmt, folder, checkpoint, target, voxel_m, device, nerfstudio)
+        folder.record_export(fmt, exported.path, checkpoint)
     except OSError as exc:
         raise OutputError(f"cannot write {target}: {exc.strerror or exc}") from None
+    return exported
 
 
 def _checked_target(target: Path, fmt: str) -> Path:
@@ -91,22 +105,37 @@ def _check_nerfstudio_folder(target: Path) -> None:
 
 
 def _write(
-    folder: RunFolder, checkpoint: Checkpoint, fmt: str, target: Path, voxel_m: float, device: torch.device | None
+    fmt: str,
+    folder: RunFolder,
+    checkpoint: Checkpoint,
+    target: Path,
+    voxel_m: float,
+    device: torch.device | None,
+    nerfstudio: NerfstudioOptions,
 ) -> Exported:
     """Write `fmt` of `checkpoint` (of the run in `folder`) to `target`."""
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
-        fill: Callable[[Path], None] = partial(
-            write_nerfstudio, keyframes=checkpoint.keyframes, camera=folder.read_intrinsics(), gaussians=gaussians
-        )
-        atomic_folder(target, fill)
-        return Exported(target, f"{len(checkpoint.keyframes)} keyframes with depth, transforms.json")
+        working = folder.read_intrinsics()
+        views, camera = views_of(checkpoint, folder.read_config(), working, nerfstudio.frames, nerfstudio.size)
+        counts: list[int] = []
+        atomic_folder(target, lambda staged: counts.append(write_nerfstudio(staged, views, camera, gaussians)))
+        what = "keyframes" if nerfstudio.frames == "keyframes" else "frames"
+        return Exported(target, f"{counts[0]} {what} at {camera.width}x{camera.height} with depth, transforms.json")
     if fmt == "splat":
         write_splat(target, gaussians)
         return Exported(target, f"{len(gaussians):,} Gaussians, 32 bytes each")
     if fmt == "ply":
         write_full_ply(target, gaussians, folder.read_config().gaussians.kind)
         return Exported(target, f"{len(gaussians):,} Gaussians with normals and f_rest_* (zeros)")
+    if fmt == "compressed-ply":
+        write_compressed_ply(target, gaussians)
+        return Exported(
+            target, f"{len(gaussians):,} Gaussians (those over 1/255 opacity), 16 bytes each, chunks of 256"
+        )
+    if fmt == "spz":
+        write_spz(target, gaussians)
+        return Exported(target, f"{len(gaussians):,} Gaussians, SPZ version 3 (gzip)")
     if fmt == "pointcloud":
         write_pointcloud(target, gaussians)
         return Exported(target, f"{len(gaussians):,} coloured points (Gaussian centres)")

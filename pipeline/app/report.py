@@ -3,20 +3,27 @@ software versions, the printed table and the files it leaves."""
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import platform
+import shlex
+import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pipeline.extras import EXTRA_OF_MODULE
+from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.outputs.run_metrics import RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.stages.frame_log import FrameLog
 
+EXPORT_NEEDS = {"mesh": "open3d", "spz": "gsply"}  # export format -> the module it needs (an extra's)
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
@@ -114,18 +121,53 @@ def format_table(metrics: RunMetrics) -> str:
 def files_and_next_steps(folder: RunFolder) -> str:
     """The end of a run's output: every file in its run folder, then the commands that take it further."""
     root = folder.path
+    exports = folder.exports_made()
+    derived = {folder.exports_record.name, *FORMATS.values(), *(str(e.get("path")) for e in exports.values())}
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file() and not p.name.startswith("."))
+    files = [p for p in files if p.parts[0] not in derived and str(p) not in derived]
     shown = [str(p) for p in files if len(p.parts) == 1]
     shown += sorted(
         {f"{p.parts[0]}/ ({sum(q.parts[0] == p.parts[0] for q in files)} files)" for p in files if len(p.parts) > 1}
     )
-    lines = [f"outputs: {root}/", *(f"  {name}" for name in shown), "next:", f"  gsplatam view {root}"]
+    lines = [f"outputs: {root}/", *(f"  {name}" for name in shown)]
+    if exports:
+        lines.append(f"exports made before this run ({folder.exports_record.name}):")
+        lines += [f"  {e.get('path')}: {e.get('stale') or 'of this map'}" for e in exports.values()]
+    return "\n".join([*lines, "next:", *next_steps(folder)])
+
+
+def next_steps(folder: RunFolder) -> list[str]:
+    """Commands that take the run further, one per line, each one that runs when pasted into a
+    shell: a tool or extra that is not installed comes with its install command first."""
+    gsplatam, root = _gsplatam(), shlex.quote(str(folder.path))
+    lines = [_needing("viser", f"{gsplatam} view {root}")]
     if folder.groundtruth.is_file():
-        lines.append(f"  evo_ape tum {folder.groundtruth} {folder.trajectory} -a   # the same ATE, by evo")
-    lines.append(f"  gsplatam export {root} --to nerfstudio|splat|ply|mesh|pointcloud")
+        evo = f"evo_ape tum {shlex.quote(str(folder.groundtruth))} {shlex.quote(str(folder.trajectory))} -a"
+        lines.append((evo if shutil.which("evo_ape") else f"pip install evo && {evo}") + "   # the same ATE, by evo")
+    lines += [_needing(EXPORT_NEEDS.get(fmt), f"{gsplatam} export {root} --to {fmt}") for fmt in FORMATS]
     if folder.recorded():
-        lines.append(f"  gsplatam run {folder.recording}   # the live session again, offline")
-    return "\n".join(lines)
+        lines.append(f"{gsplatam} run {shlex.quote(str(folder.recording))}   # the live session again, offline")
+    return [f"  {line}" for line in lines]
+
+
+def _gsplatam() -> str:
+    """How this gsplatam is called from a shell: its script where it is on the PATH, else
+    `python -m pipeline` with this interpreter (a virtual environment not activated)."""
+    return "gsplatam" if shutil.which("gsplatam") else f"{shlex.quote(sys.executable)} -m pipeline"
+
+
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ImportError:  # a finder that refuses the module outright
+        return False
+
+
+def _needing(module: str | None, command: str) -> str:
+    """`command`, after the pip command of the extra that brings `module` when it is missing."""
+    if module is None or _installed(module):
+        return command
+    return f"pip install 'gsplatam[{EXTRA_OF_MODULE[module]}]' && {command}"
 
 
 def live_outcome(folder: RunFolder, metrics: RunMetrics) -> str:

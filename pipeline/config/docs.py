@@ -83,10 +83,11 @@ def _summary(cls: type) -> str:
 
 
 def config_sections(config: Config, only: str | None = None) -> list[SectionDoc]:
-    """The keys of `config` (their defaults are its values), by section; `only` picks one."""
+    """The keys of `config` (their defaults are its values), by section; `only` picks a
+    section (`tracking`) or one key (`tracking.method`, `preset`)."""
     sections = {f.name: getattr(config, f.name) for f in fields(config) if is_dataclass(getattr(config, f.name))}
     if only is not None and only not in sections:
-        raise UserError(f"unknown config section '{only}' (choose from {', '.join(sections)})")
+        return [_one_key(config, only, sections)]
     found = []
     if only is None:
         found.append(SectionDoc("", _summary(Config), _keys(config, "", set(sections))))
@@ -94,6 +95,18 @@ def config_sections(config: Config, only: str | None = None) -> list[SectionDoc]
         if only in (None, name):
             found.append(SectionDoc(name, _summary(type(node)), _keys(node, f"{name}.", set())))
     return found
+
+
+def _one_key(config: Config, key: str, sections: dict[str, Any]) -> SectionDoc:
+    """The section of `key` holding that key alone; UserError naming a wrong section or key."""
+    section = key.split(".")[0] if "." in key else ""
+    if (section and section not in sections) or (not section and not hasattr(config, key)):
+        raise UserError(f"unknown config section '{section or key}' (choose from {', '.join(sections)})")
+    (found,) = [s for s in config_sections(config, section or None) if s.name == section]
+    keys = [k for k in found.keys if k.key == key]
+    if not keys:
+        raise UserError(f"unknown config key '{key}' (the section's keys: gsplatam config {section})")
+    return SectionDoc(found.name, found.summary, keys)
 
 
 def format_sections(sections: list[SectionDoc]) -> str:

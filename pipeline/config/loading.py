@@ -12,6 +12,8 @@ from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import tomli_w
+
 from pipeline.config.schema import DATASET_DEFAULTS, PRESET_TRACKING, PRESETS, Config
 from pipeline.errors import UserError
 
@@ -251,23 +253,18 @@ def validate(config: Config) -> None:
 
 
 def to_toml(config: Config) -> str:
-    """The config as a TOML file that `--config` reads back to an equal config."""
-    lines = [f'preset = "{config.preset}"']
+    """The config as a TOML file that `--config` reads back to an equal config (written by
+    tomli-w, which escapes every string TOML needs escaped: control characters, newlines)."""
+    table: dict[str, Any] = {"preset": config.preset}
     for section in fields(config):
         value = getattr(config, section.name)
-        if not is_dataclass(value):
-            continue
-        lines.append(f"\n[{section.name}]")
-        for item in fields(value):
-            lines.append(f"{item.name} = {toml_value(getattr(value, item.name))}")
-    return "\n".join(lines) + "\n"
+        if is_dataclass(value):
+            table[section.name] = {item.name: getattr(value, item.name) for item in fields(value)}
+    return tomli_w.dumps(table)
 
 
 def toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, tuple):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    return repr(value)
+    """One value as TOML writes it, on one line (`gsplatam config` shows defaults so)."""
+    if isinstance(value, tuple):  # tomli-w puts an array's items a line each
+        return "[" + ", ".join(toml_value(item) for item in value) + "]"
+    return tomli_w.dumps({"v": value}).removeprefix("v = ").strip()

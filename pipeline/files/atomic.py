@@ -1,6 +1,8 @@
 """Every file a run writes goes through here: a temporary file beside the target, flushed and
 fsynced, then renamed over it. A kill or a full disk leaves the old file or the new one, never
-half of one, and no temporary file behind.
+half of one, and no temporary file behind. Files get the mode the umask leaves of 0666 (0644
+under the usual 022) and folders that of 0777, as `open` and `mkdir` give them: a temporary file
+alone would be 0600, unreadable to a web server, another user or a container of another uid.
 
 `atomic_write_all` does this for a set of files that belong together (trajectory, map and
 checkpoint of one moment): every temporary file is written first and only then are they renamed,
@@ -17,6 +19,28 @@ from pathlib import Path
 from typing import IO
 
 Writer = Callable[[IO[bytes]], None]
+FILE_MODE = 0o666  # less the umask, as open() creates files
+FOLDER_MODE = 0o777  # less the umask, as mkdir() creates folders
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where Linux says it (/proc), else set and
+    restored at once (another thread creating a file in between would get mode 0666/0777)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def temporary_folder(parent: Path, prefix: str) -> Path:
+    """A new empty folder in `parent` for a set of files that is renamed into place once whole,
+    with the mode a plain mkdir gives (mkdtemp's own is 0700)."""
+    path = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    path.chmod(FOLDER_MODE & ~current_umask())
+    return path
 
 
 def atomic_write(path: Path, write: Writer) -> None:
@@ -46,6 +70,7 @@ def _write_temporary(path: Path, write: Writer) -> str:
     """-> the name of a fsynced temporary file beside `path` holding what `write` wrote."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, FILE_MODE & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()

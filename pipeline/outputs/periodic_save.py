@@ -89,6 +89,8 @@ class PeriodicSave:
         stamps = stamps[: checkpoint.frames_done]
         references = [r for _, r in stamps if r is not None]
         reference = np.stack(references) if references and len(references) == len(stamps) else None
+        log.debug("saving trajectory, map and checkpoint of %d frames to %s", len(stamps), self.folder.path)
+        started = time.perf_counter()
         try:
             self.folder.write_state(checkpoint, self.run, np.array([t for t, _ in stamps]), reference)
         except OSError as exc:
@@ -98,6 +100,7 @@ class PeriodicSave:
             log.info("saving to %s works again", self.folder.path)
             self.error = ""
         self.saved_frames = checkpoint.frames_done
+        log.debug("trajectory, map and checkpoint written in %.2f s", time.perf_counter() - started)
         log.info("saved %d frames and %d Gaussians to %s", len(stamps), len(checkpoint.gaussians), self.folder.path)
         return True
 

@@ -10,7 +10,7 @@ import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from pipeline.sources.live.recording import WRITTEN as RECORDING_FILES
 
 RESULTS = (
     "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
-    "trace.json", "profile.txt", "intrinsics.json",
+    "trace.json", "profile.txt", "intrinsics.json", "exports.json",
 )  # fmt: skip
 RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
@@ -64,6 +64,7 @@ class RunFolder:
         self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
         self.marker = path / MARKER  # this is a run folder of gsplatam (`--overwrite` acts on no other)
         self.lock = path / LOCK_NAME  # held while a process writes the folder (run_lock.py)
+        self.exports_record = path / "exports.json"  # each export's path and the map it came from
         self._frames_file: IO[str] | None = None
 
     @staticmethod
@@ -131,7 +132,7 @@ class RunFolder:
     def remove_earlier_run(self) -> None:
         """Remove what an earlier run and its exports wrote (its config, `earlier_run`, the files
         they put into their folders, temporary files left by a kill), and nothing else."""
-        for name in [self.config.name, *self.earlier_run()]:
+        for name in [*self._recorded_exports_inside(), self.config.name, *self.earlier_run()]:
             path = self.path / name
             if path.is_symlink():  # the link goes, never what it points at
                 path.unlink()
@@ -145,6 +146,56 @@ class RunFolder:
             else:
                 with contextlib.suppress(FileNotFoundError):
                     path.unlink()
+
+    def exports_made(self) -> dict[str, Any]:
+        """exports.json: format -> {path, frames, frames_mapped, gaussians, map_version[, stale]};
+        {} where there is none (or it cannot be read)."""
+        try:
+            record = json.loads(self.exports_record.read_text())
+        except (OSError, ValueError):
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def record_export(self, fmt: str, target: Path, checkpoint: Checkpoint) -> None:
+        """Note in exports.json that `target` holds `fmt` of the map of `checkpoint`."""
+        record = self.exports_made()
+        record[fmt] = {
+            "path": str(target.relative_to(self.path) if target.is_relative_to(self.path) else target.absolute()),
+            "frames": checkpoint.frames_done,
+            "frames_mapped": checkpoint.mapping.frames_seen,
+            "gaussians": len(checkpoint.gaussians),
+            "map_version": self._map_version(checkpoint.frames_done),
+        }
+        with _writing(self.exports_record):
+            atomic_write_text(self.exports_record, _json(record))
+
+    def _stale_exports(self, checkpoint: Checkpoint) -> dict[str, Any] | None:
+        """exports.json with every export of another map than `checkpoint`'s marked stale; None
+        when nothing changes (no export, or all marked already)."""
+        record, changed = self.exports_made(), False
+        for entry in record.values():
+            if "stale" not in entry and (entry.get("frames"), entry.get("gaussians")) != (
+                checkpoint.frames_done,
+                len(checkpoint.gaussians),
+            ):
+                entry["stale"] = f"made from {entry.get('frames')} frames; the map now holds {checkpoint.frames_done}"
+                changed = True
+        return record if changed else None
+
+    def _recorded_exports_inside(self) -> list[str]:
+        """The exports exports.json names inside this folder (a user's --output elsewhere stays)."""
+        paths = [Path(str(entry.get("path", ""))) for entry in self.exports_made().values()]
+        return [str(p) for p in paths if p.parts and not p.is_absolute() and ".." not in p.parts]
+
+    def _map_version(self, frames_done: int) -> int | None:
+        """The map version frames.csv gives the last of the first `frames_done` frames."""
+        try:
+            with open(self.frames_csv, newline="") as f:
+                rows = [row for row in csv.DictReader(f) if row.get("index", "").isdigit()]
+        except OSError:
+            return None
+        kept = [row for row in rows if int(row["index"]) < frames_done]
+        return int(kept[-1]["map_version"]) if kept and kept[-1]["map_version"].isdigit() else None
 
     def write_config(self, config: Config) -> None:
         with _writing(self.config):
@@ -196,6 +247,8 @@ class RunFolder:
         }
         if reference is not None:
             files[self.groundtruth] = tum_trajectory_text(timestamps, reference).encode()
+        if (stale := self._stale_exports(checkpoint)) is not None:
+            files[self.exports_record] = _json(stale).encode()
         atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
 
     def write_map(self, gaussians: Gaussians) -> None:
@@ -224,7 +277,7 @@ class RunFolder:
 
     def write_metrics(self, metrics: RunMetrics) -> None:
         with _writing(self.metrics):
-            atomic_write_text(self.metrics, json.dumps(metrics.to_json(), indent=2, sort_keys=True) + "\n")
+            atomic_write_text(self.metrics, _json(metrics.to_json()))
 
     def write_trace(self, export: Callable[[Path], None]) -> None:
         """The profiler's Chrome trace, which `export` writes to the path it is given."""
@@ -243,6 +296,10 @@ def run_owning(path: Path) -> RunFolder | None:
         if folder.owns(path) and (folder.is_run() or folder.checkpoint.is_file()):
             return folder
     return None
+
+
+def _json(value: Any) -> str:
+    return json.dumps(value, indent=2, sort_keys=True) + "\n"
 
 
 def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:

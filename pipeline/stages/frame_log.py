@@ -41,6 +41,7 @@ class FrameLog:
                 log.info("frame %d: tracking weak: %s", result.index, result.warning)
         self.relocalised_frames += result.relocalised_from is not None
         self.unmapped_frames += not result.mapped
+        log.debug("frame %d: %s; tracker: %s", result.index, _stage_times(result), _verdict(result))
 
     @property
     def last(self) -> FrameResult | None:
@@ -53,6 +54,19 @@ class FrameLog:
 
     def seconds_since_last(self) -> float | None:
         return time.perf_counter() - self.arrivals[-1] if self.arrivals else None
+
+
+def _stage_times(result: FrameResult) -> str:
+    return ", ".join(f"{stage} {1000 * seconds:.1f} ms" for stage, seconds in result.seconds.items())
+
+
+def _verdict(result: FrameResult) -> str:
+    """The tracker's verdict on a frame, its loss and coverage, and what mapping did with it."""
+    verdict = f"lost ({result.lost})" if result.lost else f"weak ({result.warning})" if result.warning else "ok"
+    if result.relocalised_from is not None:
+        verdict += f", relocalised from keyframe {result.relocalised_from}"
+    mapped = f"mapped into version {result.map_version}" if result.mapped else "not mapped"
+    return f"{verdict}, loss {result.tracking_loss:.4g}, coverage {result.coverage:.0%}; {mapped}, {result.gaussians:,} Gaussians"
 
 
 def referenced_poses(results: list[FrameResult]) -> tuple[np.ndarray, np.ndarray] | None:

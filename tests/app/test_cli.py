@@ -108,7 +108,8 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     assert main(base + ["--set", "dataset.end=4"]) == 0
     printed = capsys.readouterr().out
     assert "ATE RMSE / mean" in printed and "outputs:" in printed
-    assert "  intrinsics.json" in printed and "gsplatam export" in printed and "evo_ape tum" in printed
+    assert "  intrinsics.json" in printed and "evo_ape tum" in printed
+    assert " export " in printed and "--to nerfstudio\n" in printed  # by python -m pipeline without gsplatam on PATH
     folder = run_folder(tmp_path, "r")
     for name in (
         "config.toml",
@@ -258,3 +259,44 @@ def test_stage_times_merge_the_host_and_device_rows_of_a_range() -> None:
     ]
     times = stage_times(rows)
     assert times == {"mapping": {"count": 60, "cpu_ms": 4187.0, "device_ms": 3998.0}}
+
+
+def test_output_into_a_closed_pipe_ends_quietly_with_141() -> None:
+    """`gsplatam config | head -1`, the reader gone before the first write: no traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "pipeline", "config"], stdout=write_end, stderr=subprocess.PIPE, text=True, cwd=ROOT
+        )
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (141, "")
+
+
+def test_a_shell_pipeline_into_head_prints_the_first_line_only() -> None:
+    shell = f"set -o pipefail; {sys.executable} -m pipeline config | head -1"
+    done = subprocess.run(["bash", "-c", shell], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode in (0, 141) and len(done.stdout.splitlines()) == 1
+    assert "Traceback" not in done.stderr and "BrokenPipeError" not in done.stderr
+
+
+@pytest.mark.parametrize("verbose", [True, False], ids=["-v", "default"])
+def test_verbose_logs_each_frames_stage_times_tracker_verdict_and_the_saves(
+    verbose: bool, replica_seq: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import logging
+
+    argv = ["run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path), "--quiet", "--set", "dataset.end=3"]
+    try:
+        assert main(argv + (["-v"] if verbose else [])) == 0
+    finally:
+        logging.getLogger("gsplatam").setLevel(logging.NOTSET)
+    debug = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and r.name == "gsplatam"]
+    if not verbose:
+        assert debug == []
+        return
+    frames = [line for line in debug if line.startswith("frame ")]
+    assert [line.split(":")[0] for line in frames] == ["frame 0", "frame 1", "frame 2"]
+    assert all("tracking " in line and " ms" in line and "tracker: ok" in line for line in frames[1:]), frames
+    assert any(line.startswith("saving trajectory, map and checkpoint of 3 frames") for line in debug)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import pytest
 
@@ -171,3 +172,52 @@ def test_the_config_command_shows_one_section_and_names_a_wrong_one(capsys) -> N
     assert main(["config", "trackin"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown config section 'trackin' (choose from dataset," in err[0]
+
+
+def _shown(capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
+    """key -> its default, from the config command's output."""
+    lines = capsys.readouterr().out.splitlines()
+    return {line.split()[0]: line.split()[2] for line in lines if line.startswith("  ")}
+
+
+@pytest.mark.parametrize("device, preset, method", [("cpu", "tiny", '"align"'), ("cuda", "base", '"adam"')])
+def test_the_config_command_shows_the_defaults_run_would_use_on_this_device(
+    device: str, preset: str, method: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import torch
+
+    from pipeline import devices
+    from pipeline.app.cli import main
+
+    monkeypatch.setattr(devices, "resolve_device", lambda name: torch.device(device))
+    assert main(["config"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert f"preset '{preset}' on device {device}" in header and "picks for this device" in header
+    assert main(["config", "mapping"]) == 0
+    assert _shown(capsys)["mapping.iters"] == str(preset_config(preset).mapping.iters)
+    assert main(["config", "tracking.method"]) == 0
+    assert _shown(capsys) == {"tracking.method": method}
+
+
+def test_the_config_command_shows_one_key_and_names_a_wrong_one(capsys: pytest.CaptureFixture[str]) -> None:
+    from pipeline.app.cli import main
+
+    assert main(["config", "--preset", "base", "mapping.iters"]) == 0
+    assert _shown(capsys) == {"mapping.iters": "60"}
+    assert main(["config", "preset", "--preset", "small"]) == 0
+    assert _shown(capsys) == {"preset": '"small"'}
+    assert main(["config", "tracking.nope"]) == 2
+    assert "unknown config key 'tracking.nope'" in capsys.readouterr().err
+    assert main(["config", "trackin.method"]) == 2
+    assert "unknown config section 'trackin'" in capsys.readouterr().err
+
+
+def test_strings_that_need_toml_escapes_round_trip_through_config_toml(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    config = preset_config("tiny")
+    odd = 'a "room"\twith\nlines \\ and \x07'
+    config = replace(config, dataset=replace(config.dataset, path=odd))
+    path = tmp_path / "config.toml"
+    path.write_text(to_toml(config))
+    assert load_config(config_file=path).dataset.path == odd

@@ -4,69 +4,31 @@ third-party readers (plyfile, Open3D) and checked against what the run holds."""
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import make_checkpoint
+from conftest import GT_ROOM as ROOM
+from conftest import write_gt_run
 
 from pipeline.app.cli import main
 from pipeline.app.export import export_run
-from pipeline.config import DatasetConfig, GaussianConfig, SyntheticConfig, load_config
 from pipeline.geometry import quat_to_rotmat
 from pipeline.outputs.exports.nerfstudio import DEPTH_UNITS_PER_METRE
 from pipeline.outputs.exports.splat import SPLAT_RECORD
-from pipeline.outputs.intrinsics import CameraIntrinsics, write_intrinsics
 from pipeline.outputs.ply import read_ply
-from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
-from pipeline.slam.gaussian_map import concatenate, seed_gaussians
-from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.state import Checkpoint
-from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.synthetic import distance_to_surfaces, make_scene, trajectory
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 plyfile = pytest.importorskip("plyfile", reason="plyfile is a test dependency (pip install -e '.[test]')")
-
-ROOM = SyntheticConfig(frames=6, width=64, height=48, seed=5)
-KEYFRAMES = (0, 3, 5)
 
 
 @pytest.fixture(scope="module")
 def gt_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_gt_run(tmp_path_factory.mktemp("exports"))
-
-
-def write_gt_run(root: Path) -> Path:
-    """A run folder whose map is seeded from the room's exact depth at its exact poses (no SLAM):
-    exports are checked against known geometry, not against tracking error."""
-    write_synthetic(root / "room", ROOM, progress=False)
-    dataset = open_dataset(DatasetConfig(path=str(root / "room")))
-    frames = [dataset.decode(ref) for ref in dataset.refs]
-    keyframes, gaussians = [], None
-    for frame in frames:
-        color = torch.from_numpy(frame.color).float() / 255
-        depth, c2w = torch.from_numpy(frame.depth), torch.from_numpy(frame.c2w_gt).float()
-        k = torch.from_numpy(frame.intrinsics).float()
-        if frame.index in KEYFRAMES:
-            keyframes.append(Keyframe.of(frame.index, color, depth, c2w))
-        if frame.index in (0, len(frames) - 1):
-            seeds = seed_gaussians(color, depth, k, c2w, depth > 0, GaussianConfig())
-            gaussians = seeds if gaussians is None else concatenate(gaussians, seeds)
-    assert gaussians is not None
-    checkpoint = make_checkpoint(
-        gaussians, keyframes, torch.stack([torch.from_numpy(f.c2w_gt).float() for f in frames])
-    )
-    (root / "run").mkdir()
-    folder = RunFolder(root / "run")
-    folder.write_config(replace(load_config("tiny"), dataset=DatasetConfig(path=str(root / "room"))))
-    folder.write_state(checkpoint, RunDescription("room"), np.array([r.timestamp for r in dataset.refs]), None)
-    write_intrinsics(folder.intrinsics, CameraIntrinsics.of_matrix(frames[0].intrinsics, ROOM.width, ROOM.height))
-    return folder.path
 
 
 def _checkpoint(run: Path) -> Checkpoint:

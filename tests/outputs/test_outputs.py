@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import IO
@@ -181,3 +182,24 @@ def test_every_frames_csv_line_is_on_disk_as_soon_as_it_is_written(tmp_path: Pat
     folder.append_frame(_row(1))
     assert len(folder.frames_csv.read_text().splitlines()) == 2  # read by another reader, before any close
     folder.close()
+
+
+@pytest.fixture(params=[0o022, 0o027], ids=["umask022", "umask027"])
+def umask(request: pytest.FixtureRequest) -> Iterator[int]:
+    earlier = os.umask(request.param)
+    yield request.param
+    os.umask(earlier)
+
+
+def test_written_files_and_folders_have_the_mode_the_umask_leaves(umask: int, tmp_path: Path) -> None:
+    atomic.atomic_write_text(tmp_path / "metrics.json", "{}")
+    atomic_write_all({tmp_path / "map.ply": bytes_writer(b"ply"), tmp_path / "trajectory.txt": bytes_writer(b"")})
+    folder = atomic.temporary_folder(tmp_path, ".room.")
+    modes = {p.name: p.stat().st_mode & 0o777 for p in (tmp_path / "metrics.json", tmp_path / "map.ply", folder)}
+    assert modes == {"metrics.json": 0o666 & ~umask, "map.ply": 0o666 & ~umask, folder.name: 0o777 & ~umask}
+
+
+def test_the_umask_is_read_without_proc_too(umask: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(atomic, "Path", lambda _: Path("/nonexistent/status"))
+    assert atomic.current_umask() == umask
+    assert os.umask(umask) == umask  # left as it was

@@ -16,14 +16,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", metavar="PATH", help="file (folder for nerfstudio); default: in the run folder")
     parser.add_argument("--voxel", type=float, default=0.02, help="mesh: TSDF voxel size, metres (default: 0.02)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="mesh: where to render")
+    parser.add_argument(
+        "--frames", choices=["keyframes", "all"], default="keyframes",
+        help="nerfstudio: the keyframes (default) or every frame tracked well (decoded again from the dataset)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--size", choices=["working", "native"], default="working",
+        help="nerfstudio: SLAM's working size (default) or the dataset's own images, depth and intrinsics",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.app.export import export_run
+    from pipeline.app.export import NerfstudioOptions, export_run
     from pipeline.devices import resolve_device
+    from pipeline.errors import UserError
 
+    if args.to != "nerfstudio" and (args.frames, args.size) != ("keyframes", "working"):
+        raise UserError("--frames and --size apply to --to nerfstudio only")
     device = resolve_device(args.device) if args.to == "mesh" else None  # only a mesh is rendered
     output = Path(args.output) if args.output else None
-    exported = export_run(Path(args.run_dir), args.to, output, args.voxel, device)
+    nerfstudio = NerfstudioOptions(args.frames, args.size)
+    exported = export_run(Path(args.run_dir), args.to, output, args.voxel, device, nerfstudio)
     print(f"wrote {exported.path}: {exported.summary}")
     return 0

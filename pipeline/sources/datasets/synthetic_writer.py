@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -15,6 +14,7 @@ from tqdm import tqdm
 
 from pipeline.config import SyntheticConfig
 from pipeline.errors import UserError
+from pipeline.files.atomic import temporary_folder
 from pipeline.files.folders import atomic_folder, make_folder
 from pipeline.sources.datasets.replica import write_replica
 from pipeline.sources.datasets.synthetic import CPU, sequence
@@ -93,7 +93,7 @@ def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True,
     if _matches(path, config):
         return path
     root.mkdir(parents=True, exist_ok=True)
-    partial = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
+    partial = temporary_folder(root, f".{key}.")
     try:
         write_synthetic(partial, config, progress, device)
         if path.exists() and not _matches(path, config):

@@ -172,6 +172,7 @@ class NeRFCaptureSource:
         self._accepted = 0
 
     async def __aiter__(self) -> AsyncIterator[NeRFCapturePacket]:
+        log.debug("nerfcapture: joining DDS domain %d, reading topic '%s'", self.domain_id, TOPIC)
         dp = participant(self.domain_id)
         reader = DataReader(dp, Topic(dp, TOPIC, SplatCaptureFrame), qos=reliable_qos())
         condition = ReadCondition(reader, ViewState.Any | InstanceState.Any | SampleState.NotRead)
@@ -183,6 +184,8 @@ class NeRFCaptureSource:
             while True:
                 samples = await loop.run_in_executor(pool, _wait_and_take, waitset, reader, condition)
                 alive = {handle % HANDLE_BITS for handle in reader.get_matched_publications()}
+                if bool(alive) != self.counters.connected:
+                    log.debug("nerfcapture: %d publishers matched on DDS domain %d", len(alive), self.domain_id)
                 self.counters.connected = bool(alive)
                 if not samples and not self.counters.connected and not waiting_logged:
                     log.info("nerfcapture: waiting for a publisher on DDS domain %d, topic '%s'", self.domain_id, TOPIC)

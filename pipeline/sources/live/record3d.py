@@ -206,13 +206,16 @@ class Record3DSession:
         self.on_stage(Stage.SIGNALLING)
         timeout = aiohttp.ClientTimeout(total=self.config.http_timeout_s)
         async with aiohttp.ClientSession(timeout=timeout) as http:
+            log.debug("record3d: asking %s/metadata", self.url)
             self.metadata = await _get_json(http, self.url + "/metadata")
             try:
                 intrinsics_from_metadata(self.metadata, 1)
             except DataError as exc:
                 raise ProtocolError(f"{self.url}/metadata: {exc}") from exc
+            log.debug("record3d: asking %s/getOffer", self.url)
             offer = await _get_json(http, self.url + "/getOffer")
             offered = _read_offer(self.url + "/getOffer", offer)
+            log.debug("record3d: offer of video %s; answering", ", ".join(_video_codecs(offered)) or "none")
             self._pc = pc = RTCPeerConnection(no_stun())
             self._video = asyncio.get_running_loop().create_future()
             pc.on("track", self._on_track)
@@ -233,10 +236,13 @@ class Record3DSession:
             if not _udp_candidates(answer):
                 raise PhoneError("this host gathered no usable ICE candidate (no UDP address on a network interface)")
             self.codec = _video_codecs(answer)[0]
+            log.debug("record3d: posting the answer (%d UDP candidates) to %s", _udp_candidates(answer), self.url)
             await _post_answer(http, self.url, pc.localDescription.sdp)
             log.info("record3d: answered %s with %s, connecting", self.url, self.codec)
 
     def _on_ice_state(self) -> None:
+        if self._pc is not None:
+            log.debug("record3d: ICE connection %s", self._pc.iceConnectionState)
         if self._pc is not None and self._pc.iceConnectionState == "completed":
             self.on_stage(Stage.ICE_CONNECTED)
 

@@ -1,0 +1,57 @@
+"""What a run prints at its end: the files and the commands that take it further."""
+
+from __future__ import annotations
+
+import importlib.util
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import write_gt_run
+
+from pipeline.app import report
+from pipeline.outputs.exports import FORMATS
+from pipeline.outputs.run_folder import RunFolder
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = write_gt_run(tmp_path_factory.mktemp("a run"))  # a space: every path is quoted
+    (run / "groundtruth.txt").write_text((run / "trajectory.txt").read_text())
+    return run
+
+
+def _next(run_dir: Path) -> list[str]:
+    return [line.strip() for line in report.next_steps(RunFolder(run_dir))]
+
+
+def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> None:
+    lines = _next(run_dir)
+    assert len(lines) == 2 + len(FORMATS)  # view, evo, one export per format
+    for line in lines:
+        command = line.split("   #")[0]
+        assert "|" not in command, line
+        assert subprocess.run(["bash", "-n", "-c", command]).returncode == 0, line
+    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(FORMATS)
+
+
+def test_what_is_not_installed_comes_with_its_install_command(run_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name in ("open3d", "viser") else real(name))
+    lines = _next(run_dir)
+    (evo,) = [line for line in lines if "evo_ape" in line]
+    (mesh,) = [line for line in lines if line.split("   #")[0].endswith("--to mesh")]
+    assert evo.startswith("pip install evo && evo_ape tum ")
+    assert mesh.startswith("pip install 'gsplatam[mesh]' && ") and " -m pipeline export " in mesh
+    assert lines[0].startswith("pip install 'gsplatam[viewer]' && ")
+    assert not any(line.startswith("pip") for line in lines if line not in (evo, mesh, lines[0]))
+
+
+def test_an_export_line_runs_as_printed(run_dir: Path) -> None:
+    (line,) = [line for line in _next(run_dir) if line.endswith("--to splat")]
+    done = subprocess.run(["bash", "-c", line], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert RunFolder(run_dir).export("splat").stat().st_size > 0
