@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import shlex
+import sys
+from pathlib import Path
+
+CHECKOUT = Path(__file__).resolve().parent.parent  # holds pyproject.toml when installed from a clone
+
 # top-level module -> the extra of pyproject.toml that installs it
 EXTRA_OF_MODULE = {
     "aiortc": "live",
@@ -29,3 +35,16 @@ def missing_extra(exc: ImportError) -> str | None:
         f"this needs {module}, from the '{extra}' extra: pip install 'gsplatam[{extra}]' "
         f"(in a checkout: pip install -e '.[{extra}]')"
     )
+
+
+def pip_command() -> str:
+    """pip of this interpreter, as a shell calls it (a virtual environment need not be activated)."""
+    return f"{shlex.quote(sys.executable)} -m pip"
+
+
+def install_command(extra: str) -> str:
+    """The shell command that installs `extra` into this interpreter: from the checkout this
+    package was installed from (an editable install), else from the package index."""
+    if (CHECKOUT / "pyproject.toml").is_file():
+        return f"{pip_command()} install -e {shlex.quote(f'{CHECKOUT}[{extra}]')}"
+    return f"{pip_command()} install 'gsplatam[{extra}]'"

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.extras import EXTRA_OF_MODULE
+from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command
 from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.run_folder import RunFolder
 from pipeline.outputs.run_metrics import RunMetrics, TimingRecord
@@ -143,7 +143,9 @@ def next_steps(folder: RunFolder) -> list[str]:
     lines = [_needing("viser", f"{gsplatam} view {root}")]
     if folder.groundtruth.is_file():
         evo = f"evo_ape tum {shlex.quote(str(folder.groundtruth))} {shlex.quote(str(folder.trajectory))} -a"
-        lines.append((evo if shutil.which("evo_ape") else f"pip install evo && {evo}") + "   # the same ATE, by evo")
+        lines.append(
+            (evo if shutil.which("evo_ape") else f"{pip_command()} install evo && {evo}") + "   # the same ATE, by evo"
+        )
     lines += [_needing(EXPORT_NEEDS.get(fmt), f"{gsplatam} export {root} --to {fmt}") for fmt in FORMATS]
     if folder.recorded():
         lines.append(f"{gsplatam} run {shlex.quote(str(folder.recording))}   # the live session again, offline")
@@ -167,7 +169,7 @@ def _needing(module: str | None, command: str) -> str:
     """`command`, after the pip command of the extra that brings `module` when it is missing."""
     if module is None or _installed(module):
         return command
-    return f"pip install 'gsplatam[{EXTRA_OF_MODULE[module]}]' && {command}"
+    return f"{install_command(EXTRA_OF_MODULE[module])} && {command}"
 
 
 def live_outcome(folder: RunFolder, metrics: RunMetrics) -> str:

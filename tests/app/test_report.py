@@ -12,6 +12,7 @@ import pytest
 from conftest import write_gt_run
 
 from pipeline.app import report
+from pipeline.extras import CHECKOUT, install_command, pip_command
 from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.run_folder import RunFolder
 
@@ -44,10 +45,11 @@ def test_what_is_not_installed_comes_with_its_install_command(run_dir: Path, mon
     lines = _next(run_dir)
     (evo,) = [line for line in lines if "evo_ape" in line]
     (mesh,) = [line for line in lines if line.split("   #")[0].endswith("--to mesh")]
-    assert evo.startswith("pip install evo && evo_ape tum ")
-    assert mesh.startswith("pip install 'gsplatam[mesh]' && ") and " -m pipeline export " in mesh
-    assert lines[0].startswith("pip install 'gsplatam[viewer]' && ")
-    assert not any(line.startswith("pip") for line in lines if line not in (evo, mesh, lines[0]))
+    assert evo.startswith(f"{pip_command()} install evo && evo_ape tum ")
+    assert mesh.startswith(f"{install_command('mesh')} && ") and " -m pipeline export " in mesh
+    assert lines[0].startswith(f"{install_command('viewer')} && ")
+    assert "-e" in shlex.split(install_command("mesh")) and f"{CHECKOUT}[mesh]" in shlex.split(install_command("mesh"))
+    assert not any(" -m pip " in line for line in lines if line not in (evo, mesh, lines[0]))
 
 
 def test_an_export_line_runs_as_printed(run_dir: Path) -> None:
