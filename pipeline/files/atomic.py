@@ -84,8 +84,13 @@ def _write_temporary(path: Path, write: Writer) -> str:
 
 def atomic_export(path: Path, export: Callable[[Path], None]) -> None:
     """For a library that writes a file itself, by name (the torch profiler's trace): `export`
-    writes a temporary path beside `path`, which is renamed over `path` once complete."""
-    staged = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    writes a temporary path beside `path`, which is renamed over `path` once complete. The
+    temporary file is created first, exclusively and under a random name (`mkstemp`), so the
+    library writes into a plain file of ours, never through a link planted at a guessable name."""
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, FILE_MODE & ~current_umask())
+    os.close(fd)
+    staged = Path(name)
     try:
         export(staged)
         os.replace(staged, path)

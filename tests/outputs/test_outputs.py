@@ -17,7 +17,7 @@ from conftest import make_checkpoint
 
 from pipeline.errors import OutputError
 from pipeline.files import atomic
-from pipeline.files.atomic import atomic_write_all, bytes_writer
+from pipeline.files.atomic import atomic_export, atomic_write_all, bytes_writer, current_umask
 from pipeline.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.outputs.periodic_save import PeriodicSave
 from pipeline.outputs.run_description import RunDescription
@@ -203,3 +203,19 @@ def test_the_umask_is_read_without_proc_too(umask: int, monkeypatch: pytest.Monk
     monkeypatch.setattr(atomic, "Path", lambda _: Path("/nonexistent/status"))
     assert atomic.current_umask() == umask
     assert os.umask(umask) == umask  # left as it was
+
+
+def test_a_library_export_never_writes_through_a_link_planted_at_a_temporary_name(tmp_path: Path) -> None:
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    target = tmp_path / "trace.json"
+    (tmp_path / f".{target.name}.{os.getpid()}.tmp").symlink_to(victim)  # the name the writer once used
+
+    def export(path: Path) -> None:
+        with open(path, "w") as f:  # as the torch profiler writes its trace: by name
+            f.write("{}")
+
+    atomic_export(target, export)
+    assert victim.read_text() == "keep me"
+    assert target.read_text() == "{}" and not target.is_symlink()
+    assert target.stat().st_mode & 0o777 == 0o666 & ~current_umask()
