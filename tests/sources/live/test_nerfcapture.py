@@ -188,7 +188,9 @@ def test_live_ate_is_a_root_mean_square_over_frames_with_a_reference() -> None:
 
 
 @pytest.mark.live
-def test_loopback_receives_every_frame_bit_identical(capture_dataset: Dataset, dds_domain: int) -> None:
+def test_loopback_receives_every_frame_bit_identical(
+    capture_dataset: Dataset, dds_domain: int, caplog: pytest.LogCaptureFixture
+) -> None:
     stop = threading.Event()
     publisher = threading.Thread(target=publish_dataset, args=(capture_dataset, 20.0, 30.0, stop, dds_domain))
 
@@ -203,11 +205,15 @@ def test_loopback_receives_every_frame_bit_identical(capture_dataset: Dataset, d
 
     publisher.start()
     try:
-        packets = asyncio.run(receive())
+        with caplog.at_level(logging.DEBUG, "gsplatam"):  # -v: the connection steps
+            packets = asyncio.run(receive())
     finally:
         stop.set()
         publisher.join(timeout=10)
     assert [p.sample.id for p in packets] == list(range(1, len(capture_dataset) + 1))
+    debug = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG]
+    assert f"nerfcapture: joining DDS domain {dds_domain}, reading topic 'Frames'" in debug
+    assert f"nerfcapture: 1 publishers matched on DDS domain {dds_domain}" in debug
     for packet, ref in zip(packets, capture_dataset.refs):
         frame = capture_dataset.decode(ref)
         sent = sample_from_frame(frame, packet.sample.id, ARKIT_WORLD @ frame.c2w_gt)

@@ -219,6 +219,26 @@ def test_loopback_stream_decodes_to_the_sent_frames(
     asyncio.run(main())
 
 
+@pytest.mark.live
+def test_debug_lines_follow_each_connection_step(phone_dataset: Dataset, caplog: pytest.LogCaptureFixture) -> None:
+    """Behind -v: what the receiver asked the phone, what it offered and how ICE went, in order."""
+
+    async def main() -> None:
+        phone = FakePhone(phone_dataset, fps=30)
+        port = await phone.start("127.0.0.1", 0)
+        try:
+            await _receive(f"http://127.0.0.1:{port}", 2, FAST)
+        finally:
+            await phone.stop()
+
+    with caplog.at_level(logging.DEBUG, logger="gsplatam"):
+        asyncio.run(main())
+    steps = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and "record3d:" in r.getMessage()]
+    wanted = ["/metadata", "/getOffer", "offer of video H264", "posting the answer", "ICE connection"]
+    found = [next((i for i, line in enumerate(steps) if w in line), -1) for w in wanted]
+    assert -1 not in found and found == sorted(found), steps
+
+
 def test_the_fake_phone_moves_on_while_no_receiver_is_connected(phone_dataset: Dataset) -> None:
     """A hand-held phone keeps moving while the receiver reconnects: the next connection starts
     the away time's worth of frames later (wrapping when looping)."""
