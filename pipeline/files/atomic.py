@@ -66,11 +66,23 @@ def atomic_write_all(writes: Mapping[Path, Writer]) -> None:
         _sync_folder(folder)
 
 
-def _write_temporary(path: Path, write: Writer) -> str:
-    """-> the name of a fsynced temporary file beside `path` holding what `write` wrote."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+def _new_temporary(path: Path) -> tuple[int, str]:
+    """A new file beside `path`, created exclusively under a random name (never through a link),
+    with the mode the umask leaves of FILE_MODE: (its descriptor, its name)."""
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         os.fchmod(fd, FILE_MODE & ~current_umask())
+    except BaseException:
+        os.close(fd)
+        os.unlink(name)
+        raise
+    return fd, name
+
+
+def _write_temporary(path: Path, write: Writer) -> str:
+    """-> the name of a fsynced temporary file beside `path` holding what `write` wrote."""
+    fd, tmp = _new_temporary(path)
+    try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -87,8 +99,7 @@ def atomic_export(path: Path, export: Callable[[Path], None]) -> None:
     writes a temporary path beside `path`, which is renamed over `path` once complete. The
     temporary file is created first, exclusively and under a random name (`mkstemp`), so the
     library writes into a plain file of ours, never through a link planted at a guessable name."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.fchmod(fd, FILE_MODE & ~current_umask())
+    fd, name = _new_temporary(path)
     os.close(fd)
     staged = Path(name)
     try:

@@ -25,6 +25,22 @@ PROPERTIES = (
 PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
 
 
+def splat_fields(gaussians: Gaussians) -> dict[str, torch.Tensor]:
+    """The map as the 3DGS exporters of other libraries take it (gsplat's, gsply's): float32 on
+    the host, means [N, 3], log-scales [N, 3] (an isotropic one repeated), quaternions [N, 4]
+    (w, x, y, z), opacity logits [N], the colour as its SH DC coefficient [N, 3] and no
+    higher-order SH ([N, 0, 3])."""
+    n = len(gaussians)
+    return {
+        "means": gaussians.means.detach().float().cpu(),
+        "scales": gaussians.log_scales.detach().float().expand(-1, 3).cpu(),
+        "quats": gaussians.quats.detach().float().cpu(),
+        "opacities": gaussians.opacity_logits.detach().float().cpu(),
+        "sh0": (gaussians.colors.detach().float().cpu() - 0.5) / SH_C0,
+        "shN": torch.zeros(n, 0, 3),
+    }
+
+
 def gaussian_columns(
     gaussians: Gaussians, sh_rest: int = 0, normals: torch.Tensor | None = None
 ) -> dict[str, np.ndarray]:

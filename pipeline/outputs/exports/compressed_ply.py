@@ -14,26 +14,17 @@ from pathlib import Path
 import torch
 
 from pipeline.files.atomic import atomic_write_bytes
-from pipeline.outputs.ply import SH_C0
+from pipeline.outputs.ply import splat_fields
 from pipeline.render.types import Gaussians
 
 
 def compressed_ply_bytes(gaussians: Gaussians) -> bytes:
     from gsplat.exporter import export_splats
 
-    n = len(gaussians)
+    fields = splat_fields(gaussians)
+    fields["sh0"] = fields["sh0"][:, None, :]  # [N, 1, 3]: gsplat's SH coefficients per Gaussian
     with torch.no_grad():
-        return bytes(
-            export_splats(
-                means=gaussians.means.float().cpu(),
-                scales=gaussians.log_scales.float().expand(-1, 3).cpu(),
-                quats=gaussians.quats.float().cpu(),
-                opacities=gaussians.opacity_logits.float().cpu(),
-                sh0=((gaussians.colors.float().cpu() - 0.5) / SH_C0)[:, None, :],
-                shN=torch.zeros(n, 0, 3),
-                format="ply_compressed",
-            )
-        )
+        return bytes(export_splats(**fields, format="ply_compressed"))
 
 
 def write_compressed_ply(path: Path, gaussians: Gaussians) -> None:

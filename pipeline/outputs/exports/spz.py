@@ -10,23 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.files.atomic import atomic_export
-from pipeline.outputs.ply import SH_C0
+from pipeline.outputs.ply import splat_fields
 from pipeline.render.types import Gaussians
 
 
 def write_spz(path: Path, gaussians: Gaussians) -> None:
     import gsply
 
-    def array(values: object) -> np.ndarray:
-        return np.ascontiguousarray(np.asarray(values, dtype=np.float32))
-
-    n = len(gaussians)
-    data = gsply.GSData(
-        means=array(gaussians.means.detach().float().cpu()),
-        scales=array(gaussians.log_scales.detach().float().expand(-1, 3).cpu()),
-        quats=array(gaussians.quats.detach().float().cpu()),
-        opacities=array(gaussians.opacity_logits.detach().float().cpu()),
-        sh0=array((gaussians.colors.detach().float().cpu() - 0.5) / SH_C0),
-        shN=np.zeros((n, 0, 3), dtype=np.float32),
-    )
+    a = {name: np.ascontiguousarray(values.numpy()) for name, values in splat_fields(gaussians).items()}
+    data = gsply.GSData(a["means"], a["scales"], a["quats"], a["opacities"], a["sh0"], a["shN"])
     atomic_export(path, lambda staged: gsply.write_spz(staged, data))
