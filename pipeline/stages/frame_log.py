@@ -41,7 +41,8 @@ class FrameLog:
                 log.info("frame %d: tracking weak: %s", result.index, result.warning)
         self.relocalised_frames += result.relocalised_from is not None
         self.unmapped_frames += not result.mapped
-        log.debug("frame %d: %s; tracker: %s", result.index, _stage_times(result), _verdict(result))
+        if log.isEnabledFor(logging.DEBUG):  # per frame: the line is built only behind -v
+            log.debug("frame %d: %s; tracker: %s", result.index, _stage_times(result), _verdict(result))
 
     @property
     def last(self) -> FrameResult | None:

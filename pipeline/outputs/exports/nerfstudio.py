@@ -20,6 +20,7 @@ nerfstudio's `nerfstudio-data` parser (splatfacto, depth-nerfacto) reads it as i
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
@@ -107,7 +108,7 @@ def views_of(
     first = dataset.decode(refs[0])
     height, width = first.depth.shape
     poses = checkpoint.poses.double().numpy()
-    decoded = (dataset.decode(ref) for ref in refs)
+    decoded = itertools.chain([first], (dataset.decode(ref) for ref in refs[1:]))  # the first, decoded once
     views = (View(f.index, f.color, f.depth.astype(np.float32), poses[f.index]) for f in decoded)
     return views, CameraIntrinsics.of_matrix(first.intrinsics, width, height)
 
