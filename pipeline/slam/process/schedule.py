@@ -103,18 +103,18 @@ class ProcessSplaTAM:
 
     def checkpoint(self) -> Checkpoint:
         """Every frame tracked, with mapping's state as of now (a round trip to the mapping
-        process). If that process has failed: the map version held last and the mapping state
-        of the last checkpoint (or an empty keyframe store), so that nothing tracked is lost."""
-        if not self.mapping.failure:
-            state, _ = self.mapping.state()
-            if state is not None:
-                self._saved = state
-        mapping = self._saved if not self.mapping.failure else self._mapping_after_failure()
+        process). If that process has failed, or has sent no state although a version is held:
+        the map version held last and the mapping state of the last checkpoint (or an empty
+        keyframe store), so that nothing tracked is lost."""
+        state = None if self.mapping.failure else self.mapping.state()[0]
+        if state is not None:
+            self._saved = state
+        mapping = state or self._mapping_from_held()
         if mapping is None:
             raise RuntimeError("no map yet: nothing to checkpoint")
         return Checkpoint(self.frontend.state(keyframes=[k.pose for k in mapping.keyframes]), mapping)
 
-    def _mapping_after_failure(self) -> BackendState | None:
+    def _mapping_from_held(self) -> BackendState | None:
         held = self.held
         if held is None:
             return None
