@@ -23,7 +23,7 @@ from pipeline.geometry import invert_pose
 from pipeline.slam.align_tracker import SolveReport, level_params, prepare_rgbd, read_report
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.loop_candidates import LoopCandidate, loop_candidates
-from pipeline.slam.pose_graph import Edge, GraphSolution, alignment_information, motion_size
+from pipeline.slam.pose_graph import Edge, GraphSolution, MotionSize, alignment_information, motion_size
 from pipeline.slam.pyramid import check_pyramid_fits
 from pipeline.slam.rgbd_alignment import align
 
@@ -131,6 +131,18 @@ class LoopTally:
             rejected=self.rejected + dropped,
             dropped_by_graph=self.dropped_by_graph + dropped,
         )
+
+
+@dataclass(frozen=True)
+class ClosedLoop:
+    """A loop closed: the pose graph optimised with its accepted edges, the map moved with it."""
+
+    frame: int  # the current keyframe's frame index
+    matched: tuple[int, ...]  # frame indices of the old keyframes whose loop edges the optimum kept
+    correction: MotionSize  # the largest correction of a keyframe pose it made
+    detect_s: float  # seconds: candidates and their verification
+    correct_s: float  # seconds: the pose graph's optimisation and moving the map
+    published_s: float  # seconds from the detection's start to the corrected map published
 
 
 def verification_limits(tracking: TrackingConfig, config: LoopConfig) -> TrackingConfig:
