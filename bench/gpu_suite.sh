@@ -58,7 +58,7 @@ for part in "$@"; do
                  python3 bench/live_latency.py --out "$out/live_reconnect" --size 256x192 --seconds 60 \
                    --disconnect-at 25 --set live.retry_initial_s=3 2>&1 | tail -n 4 ;;
     live-process) export TORCHINDUCTOR_CACHE_DIR=/tmp/inductor  # the first run fills it (a fresh machine), the rest find it warm
-                  python3 bench/live_latency.py --out "$out/cold" --size 640x480 --seconds 60 --set slam.schedule=process 2>&1 | tail -n 3
+                  python3 bench/live_latency.py --out "$out/cold" --size 640x480 --seconds 45 --set slam.schedule=process 2>&1 | tail -n 3
                   for schedule in process sequential; do
                     python3 bench/live_latency.py --out "$out/$schedule" --size 640x480 --seconds 90 --set slam.schedule=$schedule 2>&1 | tail -n 3
                   done
