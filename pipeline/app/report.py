@@ -19,7 +19,7 @@ import torch
 from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command
 from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_metrics import RunMetrics, TimingRecord
+from pipeline.outputs.run_metrics import LoopRecord, RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.stages.frame_log import FrameLog
 
@@ -112,6 +112,8 @@ def format_table(metrics: RunMetrics) -> str:
         ("tracking lost", f"{metrics.lost_frames} frames"),
         ("tracking weak", f"{metrics.weak_frames} frames (mapped; low map coverage)"),
     ]
+    if metrics.loops is not None:
+        rows.append(("loops", loops_outcome(metrics.loops)))
     if metrics.peak_gpu_memory_gb is not None:
         rows.append(("peak GPU memory", f"{metrics.peak_gpu_memory_gb:.2f} GB"))
     width = max(len(k) for k, _ in rows)
@@ -139,7 +141,7 @@ def files_and_next_steps(folder: RunFolder) -> str:
 def next_steps(folder: RunFolder) -> list[str]:
     """Commands that take the run further, one per line, each one that runs when pasted into a
     shell: a tool or extra that is not installed comes with its install command first."""
-    gsplatam, root = _gsplatam(), shlex.quote(str(folder.path))
+    gsplatam, root = gsplatam_command(), shlex.quote(str(folder.path))
     lines = [_needing("viser", f"{gsplatam} view {root}")]
     if folder.groundtruth.is_file():
         evo = f"evo_ape tum {shlex.quote(str(folder.groundtruth))} {shlex.quote(str(folder.trajectory))} -a"
@@ -152,7 +154,7 @@ def next_steps(folder: RunFolder) -> list[str]:
     return [f"  {line}" for line in lines]
 
 
-def _gsplatam() -> str:
+def gsplatam_command() -> str:
     """How this gsplatam is called from a shell: its script where it is on the PATH, else
     `python -m pipeline` with this interpreter (a virtual environment not activated)."""
     return "gsplatam" if shutil.which("gsplatam") else f"{shlex.quote(sys.executable)} -m pipeline"
@@ -184,4 +186,12 @@ def run_summary(metrics: RunMetrics) -> str:
         parts.append(f"ATE RMSE {metrics.ate.rmse_cm:.2f} cm")
     if metrics.render is not None:
         parts.append(f"PSNR {metrics.render.psnr_db:.1f} dB")
+    if metrics.loops is not None:
+        parts.append(f"loops: {loops_outcome(metrics.loops)}")
     return ", ".join(parts)
+
+
+def loops_outcome(loops: LoopRecord) -> str:
+    """Loop closure's run in a few words: `2 closed (3 accepted, 5 rejected of 8 candidates)`."""
+    verdicts = f"{loops.accepted} accepted, {loops.rejected} rejected of {loops.detected} candidates"
+    return f"{len(loops.closed)} closed ({verdicts})"

@@ -2,12 +2,14 @@
 
 Written by `RunFolder.write_metrics` only. `RunMetrics.from_json` also reads the files of
 earlier versions that a `--resume` meets: a run's (`dataset`, `ate` as a table), a daemon's
-(`source`, `ate_rmse_cm`) and those of gsplatam 0.2 (no `evaluation`).
+(`source`, `ate_rmse_cm`) and those of gsplatam 0.2 (no `evaluation`). One without `loops` (a
+version before loop closure, or loops.enabled off) reads as `loops` None.
 """
 
 from __future__ import annotations
 
 import typing
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -16,8 +18,10 @@ import numpy as np
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.slam.results import FrameResult
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # loop_closure brings the alignment with it: not imported to read a metrics.json
     from _typeshed import DataclassInstance
+
+    from pipeline.slam.loop_closure import ClosedLoop, LoopTally
 
 RIGID = "rigid (rotation + translation, no scale), least squares over camera centres"
 Record = TypeVar("Record", bound="DataclassInstance")
@@ -104,6 +108,59 @@ class StopRecord:
 
 
 @dataclass(frozen=True)
+class ClosedLoopRow:
+    """One loop closed: at which keyframe, to which old ones, how far it moved the keyframe poses
+    (the largest correction) and how long it took, milliseconds."""
+
+    frame: int  # the current keyframe's frame index
+    matched_frames: list[int]  # the old keyframes whose loop edges the pose graph kept
+    correction_cm: float
+    correction_deg: float
+    detect_ms: float  # candidates and their verification
+    correct_ms: float  # the pose graph's optimisation and moving the map
+    published_ms: float  # from the detection's start to the corrected map published
+
+    @staticmethod
+    def of(loop: ClosedLoop) -> ClosedLoopRow:
+        return ClosedLoopRow(
+            frame=loop.frame,
+            matched_frames=list(loop.matched),
+            correction_cm=100 * loop.correction.translation_m,
+            correction_deg=loop.correction.rotation_deg,
+            detect_ms=1000 * loop.detect_s,
+            correct_ms=1000 * loop.correct_s,
+            published_ms=1000 * loop.published_s,
+        )
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """Loop closure over a run: its candidates and their verdicts (`LoopTally`), and the loops closed."""
+
+    detected: int = 0
+    verified: int = 0
+    accepted: int = 0  # kept by the pose graph
+    rejected: int = 0
+    failed_verification: int = 0
+    unconfirmed: int = 0
+    dropped_by_graph: int = 0
+    closed: list[ClosedLoopRow] = field(default_factory=list)
+
+    @staticmethod
+    def of(tally: LoopTally, closed: Sequence[ClosedLoop]) -> LoopRecord:
+        return LoopRecord(
+            detected=tally.detected,
+            verified=tally.verified,
+            accepted=tally.accepted,
+            rejected=tally.rejected,
+            failed_verification=tally.failed_verification,
+            unconfirmed=tally.unconfirmed,
+            dropped_by_graph=tally.dropped_by_graph,
+            closed=[ClosedLoopRow.of(loop) for loop in closed],
+        )
+
+
+@dataclass(frozen=True)
 class RunMetrics:
     """What a run reports: sizes, counts, device, timing, the ATE where the frames bring
     reference poses and, for a dataset, the rendering quality and how complete its evaluation is."""
@@ -134,6 +191,7 @@ class RunMetrics:
     interrupted: bool = False
     stopped: StopRecord | None = None
     write_error: str | None = None  # a write that failed while SLAM went on (a frames.csv line)
+    loops: LoopRecord | None = None  # loop closure (loops.enabled): candidates, verdicts, loops closed
 
     @property
     def evaluation_complete(self) -> bool:
@@ -165,5 +223,11 @@ def _record(kind: type[Record], table: Any) -> Record:
 
 
 def _value(hint: Any, raw: Any) -> Any:
+    """`raw` as `hint` reads it: a nested record, a list of them (or of plain values), or itself."""
+    if typing.get_origin(hint) is list and raw is not None:
+        if not isinstance(raw, list):
+            raise ValueError(f"expected a list for {hint}, found {type(raw).__name__}")
+        (item,) = typing.get_args(hint)
+        return [_value(item, entry) for entry in raw]
     record = next((t for t in (hint, *typing.get_args(hint)) if isinstance(t, type) and is_dataclass(t)), None)
     return raw if record is None or raw is None else _record(record, raw)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 import shlex
 import shutil
 import subprocess
@@ -15,6 +16,7 @@ from pipeline.app import report
 from pipeline.extras import CHECKOUT, install_command, pip_command
 from pipeline.outputs.exports import FORMATS
 from pipeline.outputs.run_folder import RunFolder
+from pipeline.outputs.run_metrics import ClosedLoopRow, LoopRecord, RunMetrics
 
 
 @pytest.fixture(scope="module")
@@ -57,3 +59,13 @@ def test_an_export_line_runs_as_printed(run_dir: Path) -> None:
     done = subprocess.run(["bash", "-c", line], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert RunFolder(run_dir).export("splat").stat().st_size > 0
+
+
+def test_loop_closure_is_reported_only_where_it_ran() -> None:
+    row = ClosedLoopRow(40, [3], 2.5, 1.5, 40.0, 125.0, 500.0)
+    loops = RunMetrics("room", frames=100, loops=LoopRecord(detected=8, accepted=3, rejected=5, closed=[row, row]))
+    line = "2 closed (3 accepted, 5 rejected of 8 candidates)"
+    assert re.search(rf"^  loops +{re.escape(line)}$", report.format_table(loops), re.MULTILINE)
+    assert report.run_summary(loops).endswith(f", loops: {line}")
+    plain = RunMetrics("room", frames=100)
+    assert "loops" not in report.format_table(plain) and "loops" not in report.run_summary(plain)

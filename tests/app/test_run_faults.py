@@ -7,6 +7,7 @@ import errno
 import json
 import os
 import random
+import shlex
 import shutil
 import signal
 import subprocess
@@ -21,6 +22,7 @@ from conftest import ROOT, SMALL_SYNTH, make_checkpoint, tamper_checkpoint
 from live_helpers import wait_for
 
 from pipeline.app.cli import main
+from pipeline.app.report import gsplatam_command
 from pipeline.config import load_config, to_toml, with_value
 from pipeline.files.trajectory import read_tum_trajectory
 from pipeline.outputs.checkpoint import write_checkpoint
@@ -134,7 +136,8 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
     argv = ["run", str(replica_seq), "--output", str(out), "--name", "s", "--set", "run.eval_every=2", *QUICK]
     assert main(argv) == 0
     folder = out / "s"
-    assert f"interrupted: continue with  gsplatam run --resume {folder}" in capsys.readouterr().out
+    resume = f"{gsplatam_command()} run --resume {shlex.quote(str(folder))}"
+    assert f"interrupted: continue with  {resume}" in capsys.readouterr().out
     metrics = _metrics(folder)
     assert metrics["frames"] == 6 and metrics["interrupted"] is True and _frames_in(folder)[:2] == (6, 6)
     evaluated = 1 if when == "evaluation" else 0  # a signal while writing: the files, then no evaluation

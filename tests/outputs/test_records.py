@@ -4,13 +4,16 @@ run description a checkpoint keeps, and a frames.csv line."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 import torch
 
 from pipeline.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_metrics import AteRecord, RunMetrics, TimingRecord
+from pipeline.outputs.run_metrics import AteRecord, ClosedLoopRow, LoopRecord, RunMetrics, TimingRecord
+from pipeline.slam.loop_closure import ClosedLoop, LoopTally
+from pipeline.slam.pose_graph import MotionSize
 from pipeline.slam.results import FrameResult
 
 TIME = {"tracking_s": 0.01, "densify_s": 0.0, "mapping_s": 0.02, "total_s": 0.03, "frames_timed": 4,
@@ -38,6 +41,34 @@ def test_metrics_of_earlier_versions_are_read(earlier: dict, source: str, ate_cm
     metrics = RunMetrics.from_json({**earlier, "frames": 6, "time": TIME})
     assert metrics.source == source and metrics.frames == 6 and metrics.time == TimingRecord(**TIME)
     assert (metrics.ate.rmse_cm if metrics.ate else None) == ate_cm and metrics.evaluation_complete == complete
+    assert metrics.loops is None  # written before loop closure
+
+
+def _closed_loop(frame: int, matched: tuple[int, ...]) -> ClosedLoop:
+    return ClosedLoop(frame, matched, MotionSize(0.025, 1.5), detect_s=0.04, correct_s=0.125, published_s=0.5)
+
+
+def test_loop_closure_s_outcome_round_trips_through_json() -> None:
+    tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1)
+    loops = LoopRecord.of(tally, [_closed_loop(40, (3,)), _closed_loop(90, (5, 7))])
+    metrics = RunMetrics("room", frames=100, loops=loops)
+    table = json.loads(json.dumps(metrics.to_json()))
+    assert table["loops"]["closed"][1]["matched_frames"] == [5, 7]
+    assert RunMetrics.from_json(table) == metrics
+    assert RunMetrics.from_json({**table, "loops": None}).loops is None
+    with pytest.raises(ValueError, match="expected a list"):
+        RunMetrics.from_json({**table, "loops": {**table["loops"], "closed": {"frame": 40}}})
+
+
+def test_a_loop_record_is_the_tally_and_each_closed_loop_in_cm_degrees_and_ms() -> None:
+    tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1,
+                      dropped_by_graph=1)  # fmt: skip
+    loops = LoopRecord.of(tally, [_closed_loop(40, (3, 11))])
+    counts = {k: v for k, v in dataclasses.asdict(loops).items() if k != "closed"}
+    assert counts == dataclasses.asdict(tally)
+    (row,) = loops.closed
+    assert row == ClosedLoopRow(40, [3, 11], correction_cm=2.5, correction_deg=1.5, detect_ms=40.0,
+                                correct_ms=125.0, published_ms=500.0)  # fmt: skip
 
 
 def test_the_run_description_keeps_what_it_records() -> None:

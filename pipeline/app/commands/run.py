@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 from pathlib import Path
 
 from pipeline.app.commands.options import (
@@ -36,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.dataset and camera_of(args.dataset):
         return _live(args)
-    from pipeline.app.report import files_and_next_steps, format_table
+    from pipeline.app.report import files_and_next_steps, format_table, gsplatam_command
     from pipeline.app.run import run_slam
     from pipeline.outputs.run_folder import RunFolder
 
@@ -53,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
         print(format_table(result.metrics))
         print(files_and_next_steps(result.folder))
         if result.metrics.interrupted:
-            print(f"interrupted: continue with  gsplatam run --resume {result.folder.path}")
+            resume_command = f"{gsplatam_command()} run --resume {shlex.quote(str(result.folder.path))}"
+            print(f"interrupted: continue with  {resume_command}")
     return 0
 
 
