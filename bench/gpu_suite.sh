@@ -101,5 +101,6 @@ for part in "$@"; do
     ray-matrix) python3 bench/ray_scale.py --out "$out" --stem ray_matrix --parts matrix 2>&1 | grep -v "WARNING\|INFO" | tail -n 20 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
+  tar -czf "$dest/results.tar.gz" -C "$out" .  # after every part: a call killed at its time limit keeps what was done
 done
 echo "== done (suite at ${SECONDS}s)"
