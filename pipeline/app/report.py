@@ -92,6 +92,9 @@ def format_table(metrics: RunMetrics) -> str:
     ]
     if metrics.ate is not None:
         rows.append(("ATE RMSE / mean", f"{metrics.ate.rmse_cm:.2f} / {metrics.ate.mean_cm:.2f} cm"))
+    if metrics.ate_as_tracked is not None:
+        before = metrics.ate_as_tracked
+        rows.append(("ATE before loops", f"{before.rmse_cm:.2f} / {before.mean_cm:.2f} cm"))
     if metrics.render is not None:
         r = metrics.render
         rows += [("PSNR", f"{r.psnr_db:.2f} dB"), ("SSIM", f"{r.ssim:.3f}"), ("depth L1", f"{r.depth_l1_cm:.2f} cm")]

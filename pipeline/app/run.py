@@ -173,8 +173,11 @@ def _finish(
     """Write trajectory, map and checkpoint, evaluate (unless the run was interrupted; a signal
     cuts it short), write metrics (with `before_final`, the render metrics before
     `mapping.final_iters`). OutputError where a file could not be written (a full disk)."""
-    session.saver.save_now(session.slam.checkpoint())
-    metrics = session.metrics(report, _ate(session, dataset))
+    checkpoint = session.slam.checkpoint()
+    session.saver.save_now(checkpoint)
+    metrics = session.metrics(report, _ate(session, dataset), checkpoint.mapping.loops)
+    if checkpoint.mapping.loops is not None and checkpoint.tracking.tracked_poses is not None:
+        metrics = replace(metrics, ate_as_tracked=_ate_of(checkpoint.tracking.tracked_poses.double().numpy(), dataset))
     earlier = session.folder.read_metrics() if not session.log.results else None  # a resume that only evaluates
     if earlier is not None:
         metrics = replace(metrics, runtime=earlier.runtime, time=earlier.time)
@@ -198,7 +201,11 @@ def _finish(
 
 def _ate(session: Session, dataset: Dataset) -> AteRecord | None:
     """The ATE of every frame's pose against the dataset's, where it has one for every frame."""
-    poses = torch.stack(session.slam.poses).double().cpu().numpy()
+    return _ate_of(torch.stack(session.slam.poses).double().cpu().numpy(), dataset)
+
+
+def _ate_of(poses: np.ndarray, dataset: Dataset) -> AteRecord | None:
+    """The ATE of `poses` [F, 4, 4] camera-to-world against the dataset's first F, where it has one for each."""
     refs = dataset.refs[: len(poses)]
     known = [r.c2w_gt for r in refs if r.c2w_gt is not None]
     if len(known) != len(refs) or len(refs) < 2:

@@ -193,9 +193,12 @@ def _save(session: Session, report: RuntimeReport, recording_error: str = "") ->
     if session.slam.gaussians is None:
         log.info("stopped before any frame was processed: nothing to save")
         return ServeResult(session.folder, None)
-    session.saver.save_now(session.slam.checkpoint())
+    checkpoint = session.slam.checkpoint()
+    session.saver.save_now(checkpoint)
     poses = referenced_poses(session.log.results)  # NeRFCapture's with live.device_pose=groundtruth
-    metrics = session.metrics(report, AteRecord.between(*poses) if poses is not None else None)
+    metrics = session.metrics(
+        report, AteRecord.between(*poses) if poses is not None else None, checkpoint.mapping.loops
+    )
     write_error = "; ".join(e for e in (session.saver.error, recording_error) if e) or None
     metrics = replace(metrics, interrupted=report.interrupted, write_error=write_error)
     session.folder.write_metrics(metrics)

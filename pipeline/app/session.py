@@ -23,14 +23,14 @@ from pipeline.outputs.intrinsics import IntrinsicsRecorder
 from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
 from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
+from pipeline.outputs.run_metrics import AteRecord, FrameAges, LoopRecord, RunMetrics
 from pipeline.render import make_renderer
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.kernel_time import KernelSampler
 from pipeline.slam.process.schedule import ProcessSplaTAM
 from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.state import Checkpoint
+from pipeline.slam.state import Checkpoint, LoopState
 from pipeline.slam.view import SteppedSlam
 from pipeline.source import Source
 from pipeline.stages.frame_log import FrameLog
@@ -78,9 +78,12 @@ class Session:
             self.viewer.close()
         self.slam.close()
 
-    def metrics(self, report: RuntimeReport | None, ate: AteRecord | None) -> RunMetrics:
+    def metrics(
+        self, report: RuntimeReport | None, ate: AteRecord | None, loops: LoopState | None = None
+    ) -> RunMetrics:
         """What every metrics.json holds, a dataset's or a live session's: sizes, counts, device,
-        the source's counters, frame ages, timing (`report`: None when the run failed) and the ATE."""
+        the source's counters, frame ages, timing (`report`: None when the run failed), the ATE
+        and loop closure's outcome (`loops`: the saved checkpoint's)."""
         config, slam, frames, device = self.config, self.slam, self.log, self.device
         peak = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
         return RunMetrics(
@@ -104,6 +107,7 @@ class Session:
             runtime=report.summary() if report is not None else {},
             time=timing_summary(frames, report) if report is not None else None,
             ate=ate,
+            loops=None if loops is None else LoopRecord.of(loops.tally, loops.closed),
         )
 
     @property

@@ -35,7 +35,8 @@ def finish_config(
 ) -> Setup:
     """`config` with `changes` (dotted keys) made, the values SplaTAM tunes per dataset layout
     (`layout`: replica or tum) filled in, the render backend chosen for `device` and, when `live`, the bounds of a session
-    that runs for hours; UserError for a value out of range."""
+    that runs for hours; UserError for a value out of range, ImportError when loop closure is
+    on without GTSAM (the 'loops' extra)."""
     for key, value in changes:
         config = with_value(config, key, value)
     config = with_dataset_defaults(config, layout)
@@ -43,6 +44,8 @@ def finish_config(
     if live:
         config = _with_live_bounds(config)
     validate(config)
+    if config.loops.enabled:
+        import gtsam  # noqa: F401  (the pose graph's solver: missing, one line now, not at the first loop found)
     return Setup(config, device)
 
 

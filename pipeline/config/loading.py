@@ -212,11 +212,6 @@ def validate(config: Config) -> None:
         (config.keyframes.every >= 1, "keyframes.every must be >= 1"),
         (config.keyframes.overlap_samples >= 1, "keyframes.overlap_samples must be >= 1"),
         (synthetic.loops >= 0, "synthetic.loops must be >= 0"),
-        (
-            not config.loops.enabled,
-            "loops.enabled: loop closure's parts are built and tested, but mapping does not call them yet "
-            "(issue 27); leave it off",
-        ),
         (config.loops.min_keyframes_back >= 2, "loops.min_keyframes_back must be >= 2"),
         (config.loops.max_candidates >= 1, "loops.max_candidates must be >= 1"),
         (

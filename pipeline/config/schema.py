@@ -134,7 +134,7 @@ class LoopConfig:
     """Loop closure: a keyframe that sees again what an old one saw, verified by dense alignment,
     and the keyframe pose graph optimised (the 'loops' extra: GTSAM)."""
 
-    enabled: bool = False  # close loops (refused for now: the mapping side does not call them yet)
+    enabled: bool = False  # close loops (needs the 'loops' extra: GTSAM)
     min_keyframes_back: int = 10  # a candidate is at least this many keyframes older than the current one
     radius_m: float = 0.5  # a candidate's camera centre lies within this of the current one (current estimates)
     max_angle_deg: float = 60.0  # and its viewing direction within this angle

@@ -19,11 +19,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
-from pipeline.files.atomic import atomic_write_text
 from pipeline.geometry import rotmat_to_quat
 
 F64 = torch.float64
@@ -53,11 +51,6 @@ def g2o_text(c2w: torch.Tensor, edges: Sequence[G2oEdge]) -> str:
         upper = [information[i][j] for i in range(6) for j in range(i, 6)]
         lines.append(f"EDGE_SE3:QUAT {edge.first} {edge.second} {_pose(edge.relative)} {_numbers(upper)}")
     return "\n".join(lines) + "\n"
-
-
-def write_g2o(path: Path, c2w: torch.Tensor, edges: Sequence[G2oEdge]) -> None:
-    """Write the pose graph (see `g2o_text`) to `path`, atomically."""
-    atomic_write_text(path, g2o_text(c2w, edges))
 
 
 def _pose(pose: torch.Tensor) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,9 @@ from pipeline.outputs.run_description import RunDescription
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.state import BackendState, Checkpoint, FrontendState
+from pipeline.slam.loop_closure import ClosedLoop, LoopTally
+from pipeline.slam.pose_graph import Edge, MotionSize
+from pipeline.slam.state import BackendState, Checkpoint, FrontendState, LoopState
 
 FORMAT = "gsplatam.checkpoint"
 VERSION = 1
@@ -47,6 +50,10 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
     tensors["generator_state"] = mapping.generator_state
     if tracking.last_prior is not None:
         tensors["last_prior"] = tracking.last_prior
+    if tracking.tracked_poses is not None:
+        tensors["tracked_poses"] = tracking.tracked_poses
+    if mapping.loops is not None:
+        tensors.update(_loop_tensors(mapping.loops))
     header = {
         "format": FORMAT,
         "version": VERSION,
@@ -61,6 +68,8 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
         "relocalised_frames": tracking.relocalised_frames,
         "rng_state": _json_rng_state(mapping.rng_state),
     }
+    if mapping.loops is not None:
+        header["loops"] = _loop_header(mapping.loops)
     return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, {"gsplatam": json.dumps(header)})
 
 
@@ -110,6 +119,7 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         last_prior=tensors.get("last_prior"),
         lost_frames=[int(v) for v in header.get("lost_frames", [])],  # absent: written before they were kept
         relocalised_frames=[int(v) for v in header.get("relocalised_frames", [])],
+        tracked_poses=tensors.get("tracked_poses"),  # absent: written before they were kept apart
     )
     if tracking.frames_done != header["frames_done"]:
         raise ValueError(f"{tracking.frames_done} poses for {header['frames_done']} frames")
@@ -120,10 +130,59 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         rng_state=_rng_state_of(header["rng_state"]),
         generator_state=tensors["generator_state"],
         frames_seen=int(header.get("frames_mapped", header["frames_done"])),  # absent: mapping saw every frame
+        loops=_loop_state_of(header["loops"], tensors) if "loops" in header else None,
     )
     if not 0 <= mapping.frames_seen <= tracking.frames_done:
         raise ValueError(f"{mapping.frames_seen} frames mapped of {tracking.frames_done}")
     return Checkpoint(tracking, mapping)
+
+
+def _loop_tensors(loops: LoopState) -> dict[str, torch.Tensor]:
+    tensors = {
+        "loops.creator": loops.creator,
+        "loops.node_c2w": loops.node_c2w,
+        "loops.odometry_information": loops.odometry_information,
+    }
+    if loops.loops:
+        tensors["loops.edges.relative"] = torch.stack([edge.relative for edge in loops.loops])
+        tensors["loops.edges.information"] = torch.stack([edge.information for edge in loops.loops])
+    return tensors
+
+
+def _loop_header(loops: LoopState) -> dict[str, Any]:
+    return {
+        "node_positions": loops.node_positions,
+        "edges": [[edge.first, edge.second] for edge in loops.loops],
+        "tally": asdict(loops.tally),
+        "closed": [asdict(loop) for loop in loops.closed],
+    }
+
+
+def _loop_state_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> LoopState:
+    pairs = header["edges"]
+    relative = tensors.get("loops.edges.relative", torch.zeros(0, 4, 4, dtype=torch.float64))
+    information = tensors.get("loops.edges.information", torch.zeros(0, 6, 6, dtype=torch.float64))
+    if len(relative) != len(pairs) or len(information) != len(pairs):
+        raise ValueError(
+            f"{len(pairs)} loop edges with {len(relative)} relative poses, {len(information)} informations"
+        )
+    edges = [Edge(int(a), int(b), relative[i], information[i], loop=True) for i, (a, b) in enumerate(pairs)]
+    closed = [
+        ClosedLoop(
+            int(c["frame"]), tuple(int(f) for f in c["matched"]), MotionSize(**c["correction"]),
+            float(c["detect_s"]), float(c["correct_s"]), float(c["published_s"]),
+        )
+        for c in header["closed"]
+    ]  # fmt: skip
+    return LoopState(
+        creator=tensors["loops.creator"],
+        node_c2w=tensors["loops.node_c2w"],
+        node_positions=[int(p) for p in header["node_positions"]],
+        odometry_information=tensors["loops.odometry_information"],
+        loops=edges,
+        tally=LoopTally(**{k: int(v) for k, v in header["tally"].items()}),
+        closed=closed,
+    )
 
 
 def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
@@ -145,6 +204,25 @@ def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
         _check(f"keyframes.{i}.color_u8", k.color_u8, (*size, 3), torch.uint8)
         _check(f"keyframes.{i}.depth", k.depth, size)
         _check(f"keyframes.{i}.c2w", k.c2w, (4, 4))
+    if checkpoint.tracking.tracked_poses is not None:
+        _check("tracked_poses", checkpoint.tracking.tracked_poses, (checkpoint.frames_done, 4, 4))
+    if (loops := checkpoint.mapping.loops) is not None:
+        _check_loops(loops, n)
+
+
+def _check_loops(loops: LoopState, gaussians: int) -> None:
+    """ValueError naming the first of loop closure's tensors that is not what a run writes."""
+    nodes = len(loops.node_positions)
+    _check("loops.creator", loops.creator, (gaussians,), torch.int64)
+    if gaussians and not bool(((loops.creator >= -1) & (loops.creator < nodes)).all()):
+        raise ValueError(f"loops.creator names a node outside -1..{nodes - 1}")
+    _check("loops.node_c2w", loops.node_c2w, (nodes, 4, 4))
+    _check("loops.odometry_information", loops.odometry_information, (nodes, 6, 6))
+    for i, edge in enumerate(loops.loops):
+        if not (0 <= edge.first < nodes and 0 <= edge.second < nodes):
+            raise ValueError(f"loop edge {i} joins nodes {edge.first} and {edge.second} of {nodes}")
+        _check(f"loops.edges.relative[{i}]", edge.relative, (4, 4))
+        _check(f"loops.edges.information[{i}]", edge.information, (6, 6))
 
 
 def _scale_axes(run: RunDescription, log_scales: torch.Tensor) -> int:

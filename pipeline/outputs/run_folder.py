@@ -18,6 +18,7 @@ from pipeline import __version__
 from pipeline.config import Config, load_config, to_toml
 from pipeline.errors import DataError, OutputError
 from pipeline.files.atomic import atomic_export, atomic_write_all, atomic_write_text, bytes_writer
+from pipeline.files.g2o import G2oEdge, g2o_text
 from pipeline.files.trajectory import tum_trajectory_text
 from pipeline.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
 from pipeline.outputs.exports import FORMATS
@@ -29,13 +30,14 @@ from pipeline.outputs.run_description import RunDescription
 from pipeline.outputs.run_lock import LOCK_NAME, RunLock
 from pipeline.outputs.run_metrics import RunMetrics
 from pipeline.render.types import Gaussians
-from pipeline.slam.state import Checkpoint
+from pipeline.slam.pose_graph import chained
+from pipeline.slam.state import Checkpoint, LoopState
 from pipeline.sources.live.recording import COLOR_LIST
 from pipeline.sources.live.recording import WRITTEN as RECORDING_FILES
 
 RESULTS = (
     "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
-    "trace.json", "profile.txt", "intrinsics.json", "exports.json",
+    "trace.json", "profile.txt", "intrinsics.json", "exports.json", "trajectory_as_tracked.txt", "pose_graph.g2o",
 )  # fmt: skip
 RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
@@ -56,6 +58,8 @@ class RunFolder:
         self.metrics = path / "metrics.json"
         self.trajectory = path / "trajectory.txt"  # estimated camera-to-world, TUM format
         self.groundtruth = path / "groundtruth.txt"  # reference camera-to-world, TUM format
+        self.trajectory_as_tracked = path / "trajectory_as_tracked.txt"  # with loop closure: before its corrections
+        self.pose_graph = path / "pose_graph.g2o"  # with loop closure: the keyframe pose graph (g2o's format)
         self.map = path / "map.ply"
         self.checkpoint = path / "checkpoint.safetensors"
         self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
@@ -247,6 +251,11 @@ class RunFolder:
         }
         if reference is not None:
             files[self.groundtruth] = tum_trajectory_text(timestamps, reference).encode()
+        if (loops := checkpoint.mapping.loops) is not None:
+            tracked = checkpoint.tracking.tracked_poses
+            tracked = checkpoint.poses if tracked is None else tracked
+            files[self.trajectory_as_tracked] = tum_trajectory_text(timestamps, tracked.double().numpy()).encode()
+            files[self.pose_graph] = pose_graph_text(loops).encode()
         if (stale := self._stale_exports(checkpoint)) is not None:
             files[self.exports_record] = _json(stale).encode()
         atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
@@ -327,6 +336,14 @@ def _writing(path: Path) -> Iterator[None]:
         yield
     except OSError as exc:
         raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def pose_graph_text(loops: LoopState) -> str:
+    """Loop closure's keyframe pose graph in g2o's format: every keyframe kept, the odometry
+    edges and the loop edges the optimum kept."""
+    graph = chained(loops.node_c2w, loops.odometry_information, tuple(loops.loops))
+    edges = [G2oEdge(e.first, e.second, e.relative, e.information) for e in graph.edges]
+    return g2o_text(graph.c2w, edges)
 
 
 def _row_index(line: str) -> int | None:

@@ -185,6 +185,7 @@ class RunMetrics:
     runtime: dict[str, Any] = field(default_factory=dict)  # RuntimeReport.summary()
     time: TimingRecord | None = None
     ate: AteRecord | None = None
+    ate_as_tracked: AteRecord | None = None  # with loop closure: of the poses before its corrections
     render: RenderRecord | None = None
     render_before_final_iters: RenderRecord | None = None  # before mapping.final_iters (None without it)
     evaluation: str | None = None  # "complete", or why not; None: live (no evaluation)

@@ -7,7 +7,9 @@ frames when mapping falls behind (`skip`): both are passed on with their poses, 
 
 from __future__ import annotations
 
+import logging
 import random
+import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -19,14 +21,17 @@ from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.frontend import TrackedFrame, TrackerMark
-from pipeline.slam.gaussian_map import concatenate, copied, most_opaque, seed_gaussians
+from pipeline.slam.gaussian_map import concatenate, copied, gathered, most_opaque, moved_rigidly, seed_gaussians
 from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
+from pipeline.slam.loop_closer import Correction, LoopCloser
+from pipeline.slam.loop_closure import ClosedLoop, closed_loop_line
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping import MapSettings, WindowPlan, map_window, optimise_window
 from pipeline.slam.results import FrameResult
-from pipeline.slam.state import BackendState
+from pipeline.slam.state import BackendState, LoopState
 from pipeline.slam.timing import StageClock
 
+log = logging.getLogger("gsplatam")
 MAP_BOUND_MARGIN = 0.9  # a map past mapping.max_gaussians is cut to this fraction of it
 
 
@@ -55,6 +60,9 @@ class MappingBackend:
         self._cycle: list[int] = []  # keyframe indices still to visit in this round of refinement passes
         self.on_step: Callable[[], None] | None = None  # called before every optimiser step (a sign of life)
         self.clock = StageClock(device)
+        self.loops: LoopCloser | None = None  # loops.enabled: the keyframe pose graph and loop search
+        if config.loops.enabled:
+            self.loops = LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed)
 
     def state(self) -> BackendState:
         """A host copy of this side's state (after the last frame it was given)."""
@@ -68,7 +76,18 @@ class MappingBackend:
             rng_state=self.rng.getstate(),
             generator_state=self.generator.get_state(),
             frames_seen=self.frames_seen,
+            loops=None if self.loops is None else self._loop_state(),
         )
+
+    def _loop_state(self) -> LoopState:
+        """A host copy of loop closure's state, its nodes at the keyframes' current poses."""
+        assert self.loops is not None
+        state = self.loops.state
+        node_c2w = self.loops.graph_poses(self.keyframes)
+        return LoopState(
+            state.creator.cpu(), node_c2w, list(state.node_positions), state.odometry_information,
+            list(state.loops), state.tally, list(state.closed),
+        )  # fmt: skip
 
     def restore(self, saved: BackendState, mark: TrackerMark) -> None:
         """Continue from `saved`, the tracking side standing at `mark`; publishes the map."""
@@ -85,6 +104,8 @@ class MappingBackend:
         self.last_keyframe_seen = (saved.frames_seen - 1) // every * every  # the cadence of an unbroken run
         self.mark = mark
         self.latest = None
+        if self.loops is not None:
+            self.loops.restore(saved.loops, len(self.gaussians), dev)
         self.publish()
 
     def map(self, tracked: TrackedFrame, is_last: bool = False) -> FrameResult:
@@ -98,6 +119,7 @@ class MappingBackend:
             torch.cuda.current_stream().wait_event(tracked.ready)
             for tensor in (frame.color, frame.depth, frame.intrinsics, c2w):
                 tensor.record_stream(torch.cuda.current_stream())
+        keeps = self.frames_seen - self.last_keyframe_seen >= self.config.keyframes.every or is_last
         with self.clock.stage("densify"):
             if self.gaussians is None:
                 added = self._initialise(frame, c2w)
@@ -105,15 +127,28 @@ class MappingBackend:
             else:
                 added = self._densify(frame, c2w)
                 window = self._window(frame, c2w)
+            if self.loops is not None:
+                self.loops.seeded(added, keeps, self.device)
         current = Keyframe.of(frame.index, frame.color, frame.depth, c2w, tracked.mark.poses_done - 1)
         with self.clock.stage("mapping"):
             self._map(window + [current], frame.intrinsics)
-        if self.frames_seen - self.last_keyframe_seen >= self.config.keyframes.every or is_last:
+        correction = None
+        if keeps:
             self._keep(current)
+            if self.loops is not None:
+                correction = self.loops.keyframe_kept(self.keyframes, frame.intrinsics)
+                if correction is not None:
+                    self._correct(correction)
         self._bound_map()
         self.publish()
+        if correction is not None:
+            self._published(correction)
         seconds = self.clock.read()
         return self._passed(tracked, added, seconds.get("densify", 0.0), seconds.get("mapping", 0.0), mapped=True)
+
+    def loops_closed(self) -> list[ClosedLoop]:
+        """The loops closed so far, oldest first (none without loop closure)."""
+        return [] if self.loops is None else list(self.loops.state.closed)
 
     def _keep(self, keyframe: Keyframe) -> None:
         """Add a keyframe; past `keyframes.max_kept`, drop the most redundant viewpoint."""
@@ -129,7 +164,30 @@ class MappingBackend:
         selection every frame)."""
         limit = self.config.mapping.max_gaussians
         if limit and self.gaussians is not None and len(self.gaussians) > limit:
-            self.gaussians = most_opaque(self.gaussians, int(MAP_BOUND_MARGIN * limit))
+            keep = most_opaque(self.gaussians, int(MAP_BOUND_MARGIN * limit))
+            if keep is not None:
+                self.gaussians = gathered(self.gaussians, keep)
+                if self.loops is not None:
+                    self.loops.kept(keep)
+
+    def _correct(self, correction: Correction) -> None:
+        """Move the map and the stored keyframes with a closed loop's corrected poses."""
+        assert self.gaussians is not None and self.loops is not None
+        self.gaussians = moved_rigidly(self.gaussians, self.loops.state.creator, correction.node_corrections)
+        node_of = {p: n for n, p in enumerate(self.loops.state.node_positions)}
+        self.keyframes = [
+            replace(k, c2w=correction.node_c2w[node_of[k.pose.position]].to(k.c2w)) for k in self.keyframes
+        ]
+
+    def _published(self, correction: Correction) -> None:
+        """Record the closed loop, with the time from its detection's start until its corrected
+        map was published (`LoopState.closed`)."""
+        assert self.loops is not None
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)  # once per loop closed: its times are the GPU's too
+        closed = replace(correction.closed, published_s=time.perf_counter() - correction.started)
+        self.loops.state.closed.append(closed)
+        log.info(closed_loop_line(closed))  # a mapping process configures no logging: its client logs the report
 
     def refine(self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0) -> int:
         """A refinement pass: `renders` view renders over `views` stored keyframes (0: as many as
@@ -146,6 +204,8 @@ class MappingBackend:
         radius = self.scene_radius
         result = optimise_window(self.gaussians, chosen, self.intrinsics, radius, self.rng, self.settings, plan)
         self.gaussians = result.gaussians
+        if self.loops is not None:
+            self.loops.kept(result.kept)
         for position, c2w in zip(positions, result.c2w):
             self.keyframes[position] = replace(self.keyframes[position], c2w=c2w)
         self.publish()
@@ -230,4 +290,7 @@ class MappingBackend:
         if self.config.mapping.iters == 0:
             return
         radius = self.scene_radius
-        self.gaussians = map_window(self.gaussians, views, intrinsics, radius, self.rng, self.settings, self.on_step)
+        result = map_window(self.gaussians, views, intrinsics, radius, self.rng, self.settings, self.on_step)
+        self.gaussians = result.gaussians
+        if self.loops is not None:
+            self.loops.kept(result.kept)

@@ -96,7 +96,9 @@ class TrackingFrontend:
         self.tracker = tracker
         self.config = config
         self.device = device
-        self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked
+        self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked (since a resume: as saved)
+        self.tracked: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame as tracked (before any correction)
+        self.anchors: list[KeyframePose | None] = []  # per frame: the keyframe it follows, with its pose then
         self.timestamps: list[float | None] = []  # seconds, per frame tracked (None: before a resume)
         self.states: list[TrackingState] = []  # per frame tracked
         self.last_good = -1  # position in `poses` of the last frame not lost
@@ -109,13 +111,42 @@ class TrackingFrontend:
         return len(self.poses)
 
     def poses_with(self, keyframes: Sequence[KeyframePose], frames: int | None = None) -> list[torch.Tensor]:
-        """The first `frames` poses (default: all), each keyframe's replaced by the mapping
-        side's (refined by its passes)."""
-        poses = self.poses[:frames]
-        for keyframe in keyframes:
-            if keyframe.position < len(poses):
-                poses[keyframe.position] = keyframe.c2w.to(self.device)
+        """The first `frames` poses (default: all) as the mapping side's `keyframes` now place
+        them: a keyframe's own pose as mapping refined or a loop corrected it; any other frame
+        follows the keyframe it was tracked after (its anchor: the newest keyframe of the map
+        version it was tracked against), pose = anchor_now @ inv(anchor_then) @ pose, as
+        ORB-SLAM's frames follow their reference keyframe. An anchor whose pose is the very
+        tensor it was leaves the pose as it is (no rounding)."""
+        now = {k.position: k.c2w for k in keyframes}
+        corrections: dict[int, torch.Tensor] = {}  # id(anchor) -> its correction
+        poses = []
+        for position, pose in enumerate(self.poses[:frames]):
+            if position in now:
+                poses.append(now[position].to(self.device))
+            elif (correction := self._correction(self.anchors[position], now, corrections)) is None:
+                poses.append(pose)
+            else:
+                poses.append(correction @ pose)
         return poses
+
+    def _correction(
+        self, anchor: KeyframePose | None, now: dict[int, torch.Tensor], known: dict[int, torch.Tensor]
+    ) -> torch.Tensor | None:
+        """[4, 4] anchor_now @ inv(anchor_then), or None where the anchor has not moved (or left the store)."""
+        if anchor is None or anchor.position not in now or now[anchor.position] is anchor.c2w:
+            return None
+        if id(anchor) not in known:
+            then = anchor.c2w.to(self.device)
+            known[id(anchor)] = now[anchor.position].to(then) @ invert_pose(then)
+        return known[id(anchor)]
+
+    def _followed(self, position: int, now: dict[int, torch.Tensor]) -> torch.Tensor:
+        """One frame's pose as the keyframes' poses `now` (position -> [4, 4]) place it (`poses_with`)."""
+        if position in now:
+            return now[position].to(self.device)
+        correction = self._correction(self.anchors[position], now, {})
+        pose = self.poses[position]
+        return pose if correction is None else correction @ pose
 
     def mark(self) -> TrackerMark:
         """Where this side stands now (a checkpoint cut after the last frame tracked)."""
@@ -132,6 +163,7 @@ class TrackingFrontend:
             last_prior=None if mark.prior is None else mark.prior.cpu(),
             lost_frames=self._frames_in(TrackingState.LOST, frames),
             relocalised_frames=self._frames_in(TrackingState.RELOCALISED, frames),
+            tracked_poses=torch.stack(self.tracked[:frames]).cpu() if frames else torch.zeros(0, 4, 4),
         )
 
     def _frames_in(self, state: TrackingState, frames: int) -> list[int]:
@@ -140,9 +172,13 @@ class TrackingFrontend:
 
     def restore(self, saved: FrontendState) -> None:
         """Continue after the frames of `saved` (their poses' times are not kept: the first
-        frames after it use the fixed jump limit and the whole velocity)."""
+        frames after it use the fixed jump limit and the whole velocity). Its frames follow no
+        keyframe until `follow` names them."""
         frames = saved.frames_done
         self.poses = list(saved.poses.to(self.device))
+        tracked = saved.tracked_poses if saved.tracked_poses is not None else saved.poses
+        self.tracked = list(tracked.to(self.device))
+        self.anchors = [None] * frames
         self.timestamps = [None] * frames
         self.loss_history = list(saved.loss_history)
         states = dict.fromkeys(range(frames), TrackingState.TRACKED)
@@ -151,6 +187,16 @@ class TrackingFrontend:
         self.states = list(states.values())
         self.last_good = max(set(range(frames)) - set(saved.lost_frames), default=-1)
         self.last_prior = None if saved.last_prior is None else saved.last_prior.to(self.device)
+
+    def follow(self, keyframes: Sequence[KeyframePose]) -> None:
+        """After a resume: each saved frame follows the newest of `keyframes` (the restored map's)
+        at or before it, from its pose as saved."""
+        ordered = sorted(keyframes, key=lambda k: k.position)
+        newest: KeyframePose | None = None
+        for position in range(len(self.poses)):
+            while ordered and ordered[0].position <= position:
+                newest = ordered.pop(0)
+            self.anchors[position] = newest
 
     def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackedFrame:
         """Frame t against the latest map version (None: the first frame, where the map starts:
@@ -164,10 +210,11 @@ class TrackingFrontend:
                 attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
             else:
                 gaussians = latest.for_current_stream()
-                attempt = self._attempt(gaussians, frame, self._initial_pose(frame))
+                attempt = self._attempt(gaussians, frame, self._initial_pose(frame, latest.keyframes))
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
-            self._record(frame, attempt, first=latest is None)
+            anchor = max(latest.keyframes, key=lambda k: k.position) if latest and latest.keyframes else None
+            self._record(frame, attempt, anchor, first=latest is None)
         ready = None
         if frame.depth.is_cuda:
             ready = torch.cuda.Event()
@@ -179,18 +226,21 @@ class TrackingFrontend:
             result.age_at_start_s = started - frame.received_at
         return TrackedFrame(frame, attempt.c2w, result, self.mark(), ready)
 
-    def _initial_pose(self, frame: DeviceFrame) -> torch.Tensor:
+    def _initial_pose(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last
         good frame applied to its estimate when the frames bring pose priors, else constant
         velocity when the last frame was tracked from its prediction and the one before it was
         good too, else the last good pose (after a loss or a relocalisation the velocity starts
-        again from zero)."""
-        poses, good, prior, states = self.poses, self.last_good, self.last_prior, self.states
+        again from zero). Those frames' poses as the map version's `keyframes` place them: after
+        a loop's correction the guess moves with the map."""
+        good, prior, states, last = self.last_good, self.last_prior, self.states, len(self.poses) - 1
+        now = {k.position: k.c2w for k in keyframes}
         if frame.c2w_prior is not None and prior is not None:
-            return poses[good] @ invert_pose(prior) @ frame.c2w_prior
-        if good == len(poses) - 1 >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
-            return constant_velocity(poses[-2], poses[-1], self._velocity_fraction(frame))
-        return poses[good]
+            return self._followed(good, now) @ invert_pose(prior) @ frame.c2w_prior
+        if good == last >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
+            before, latest = self._followed(last - 1, now), self._followed(last, now)
+            return constant_velocity(before, latest, self._velocity_fraction(frame))
+        return self._followed(good, now)
 
     def _velocity_fraction(self, frame: DeviceFrame) -> float:
         """The part of the last motion to repeat: all of it, unless the last motion spanned a
@@ -279,9 +329,12 @@ class TrackingFrontend:
             warning = f"map covers only {cov:.0%} of the valid pixels"
         return Verdict(per_pixel, cov, lost, warning)
 
-    def _record(self, frame: DeviceFrame, attempt: Attempt, first: bool) -> None:
-        """Carry the frame's pose, and the loss and device pose of a frame tracked well, to the next."""
+    def _record(self, frame: DeviceFrame, attempt: Attempt, anchor: KeyframePose | None, first: bool) -> None:
+        """Carry the frame's pose (following `anchor`), and the loss and device pose of a frame
+        tracked well, to the next."""
         self.poses.append(attempt.c2w)
+        self.tracked.append(attempt.c2w)
+        self.anchors.append(anchor)
         self.timestamps.append(frame.timestamp)
         self.states.append(attempt.state)
         if not first and math.isfinite(attempt.verdict.per_pixel):

@@ -7,7 +7,7 @@ from dataclasses import fields
 import torch
 
 from pipeline.config import GaussianConfig
-from pipeline.geometry import backproject, pixel_grid
+from pipeline.geometry import backproject, pixel_grid, quat_multiply, rotmat_to_quat
 from pipeline.render.types import Gaussians
 
 
@@ -67,12 +67,34 @@ def concatenate(a: Gaussians, b: Gaussians) -> Gaussians:
     return Gaussians(*(torch.cat([getattr(a, n).detach(), getattr(b, n).detach()]) for n in PARAMETER_NAMES))
 
 
-def most_opaque(gaussians: Gaussians, count: int) -> Gaussians:
-    """The `count` most opaque Gaussians (all, when there are no more than that)."""
+def gathered(gaussians: Gaussians, positions: torch.Tensor) -> Gaussians:
+    """The Gaussians at `positions` [M] (int64), detached."""
+    return Gaussians(*(getattr(gaussians, n).detach()[positions] for n in PARAMETER_NAMES))
+
+
+def most_opaque(gaussians: Gaussians, count: int) -> torch.Tensor | None:
+    """Positions [count] of the `count` most opaque Gaussians (None when there are no more than that)."""
     if len(gaussians) <= count:
-        return gaussians
-    keep = torch.topk(gaussians.opacity_logits.detach(), count, sorted=False).indices
-    return Gaussians(*(getattr(gaussians, n).detach()[keep] for n in PARAMETER_NAMES))
+        return None
+    return torch.topk(gaussians.opacity_logits.detach(), count, sorted=False).indices
+
+
+def moved_rigidly(gaussians: Gaussians, owner: torch.Tensor, corrections: torch.Tensor) -> Gaussians:
+    """Each Gaussian moved by the rigid correction of its owner: `owner` [N] int64 indexes
+    `corrections` [K, 4, 4] (world -> world, applied on the left); -1 stays. Means are
+    transformed, rotations composed with the correction's (scales, opacities and colours stay)."""
+    moving = owner >= 0
+    correction = corrections.to(gaussians.means)[owner.clamp(min=0)]  # [N, 4, 4]
+    means = (correction[:, :3, :3] @ gaussians.means.detach()[:, :, None])[:, :, 0] + correction[:, :3, 3]
+    turns = torch.stack([rotmat_to_quat(c[:3, :3]) for c in corrections.double().cpu()])  # [K, 4]
+    quats = quat_multiply(turns.to(gaussians.quats)[owner.clamp(min=0)], gaussians.quats.detach())
+    return Gaussians(
+        means=torch.where(moving[:, None], means, gaussians.means.detach()),
+        quats=torch.where(moving[:, None], quats, gaussians.quats.detach()),
+        log_scales=gaussians.log_scales.detach(),
+        opacity_logits=gaussians.opacity_logits.detach(),
+        colors=gaussians.colors.detach(),
+    )
 
 
 def prune_mask(gaussians: Gaussians, min_opacity: float, max_scale: float) -> torch.Tensor:

@@ -145,6 +145,18 @@ class ClosedLoop:
     published_s: float  # seconds from the detection's start to the corrected map published
 
 
+def closed_loop_line(loop: ClosedLoop) -> str:
+    """The log line of a closed loop."""
+    matched = ", ".join(str(frame) for frame in loop.matched)
+    size = loop.correction
+    return (
+        f"loop closed at frame {loop.frame} with frame{'s' if len(loop.matched) > 1 else ''} {matched}: keyframes"
+        f" moved up to {100 * size.translation_m:.1f} cm, {size.rotation_deg:.1f} deg; detection"
+        f" {1000 * loop.detect_s:.0f} ms, correction {1000 * loop.correct_s:.0f} ms, corrected map published"
+        f" {1000 * loop.published_s:.0f} ms after the detection began"
+    )
+
+
 def verification_limits(tracking: TrackingConfig, config: LoopConfig) -> TrackingConfig:
     """The tracker's self-judgement under loop closure's stricter limits."""
     return replace(

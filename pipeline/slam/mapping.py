@@ -72,6 +72,7 @@ class WindowResult:
     gaussians: Gaussians  # detached
     c2w: list[torch.Tensor]  # [4, 4] camera-to-world per view after the pass (moved only with pose_lr > 0)
     renders: int  # view renders done (fewer than planned when stopped early)
+    kept: torch.Tensor | None  # [M] int64 positions in the input of the Gaussians kept by pruning (None: no pruning)
 
 
 def map_window(
@@ -82,13 +83,10 @@ def map_window(
     rng: random.Random,
     settings: MapSettings,
     on_step: Callable[[], None] | None = None,
-) -> Gaussians:
-    """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`).
-
-    -> the optimised Gaussians (detached).
-    """
+) -> WindowResult:
+    """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`)."""
     plan = WindowPlan(settings.config.iters, on_step=on_step)
-    return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan).gaussians
+    return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan)
 
 
 def optimise_window(
@@ -113,6 +111,7 @@ def optimise_window(
     optimizer = make_map_optimizer(groups, config.optimizer, params.means.is_cuda)
     poses = _ViewPoses(views, intrinsics, settings, plan)
     per_step, done = config.views_per_step, 0
+    kept: torch.Tensor | None = None
     for first in range(0, plan.iters, per_step):
         if plan.on_step is not None:
             plan.on_step()
@@ -124,6 +123,7 @@ def optimise_window(
                 keep = prune_mask(params, config.prune_opacity, config.prune_scale_factor * scene_radius)
                 keep = keep.nonzero()[:, 0]  # positions: the count is read back once, not per gathered tensor
             params = _prune(optimizer, keep)
+            kept = keep if kept is None else kept[keep]
         picks = [rng.randrange(len(views)) for _ in renders]
         loss, visible = _views_loss(params, [views[p] for p in picks], poses.cameras(picks), settings)
         optimizer.zero_grad(set_to_none=True)
@@ -133,7 +133,7 @@ def optimise_window(
         poses.step()
         done += len(renders)
     detached = Gaussians(*(getattr(params, n).detach() for n in PARAMETER_NAMES))
-    return WindowResult(detached, poses.c2w(), done)
+    return WindowResult(detached, poses.c2w(), done, kept)
 
 
 class _ViewPoses:

@@ -89,6 +89,16 @@ def with_keyframe(graph: PoseGraph, c2w: torch.Tensor, information: torch.Tensor
     return PoseGraph(torch.cat([graph.c2w, pose[None]]), edges)
 
 
+def chained(c2w: torch.Tensor, odometry_information: torch.Tensor, loops: tuple[Edge, ...]) -> PoseGraph:
+    """Nodes at `c2w` [K, 4, 4] float64, an odometry edge from each node to the next at the
+    relative pose the nodes imply (of `odometry_information[k]` [6, 6] for the edge into node k),
+    and the `loops`."""
+    odometry = tuple(
+        Edge(k - 1, k, invert_pose(c2w[k - 1]) @ c2w[k], odometry_information[k]) for k in range(1, len(c2w))
+    )
+    return PoseGraph(c2w, (*odometry, *loops))
+
+
 def with_loop(graph: PoseGraph, edge: Edge) -> PoseGraph:
     return replace(graph, edges=(*graph.edges, replace(edge, loop=True)))
 

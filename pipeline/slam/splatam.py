@@ -99,3 +99,4 @@ class SplaTAM:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         self.frontend.restore(saved.tracking)
         self.backend.restore(saved.mapping, self.frontend.mark())
+        self.frontend.follow([k.pose for k in self.backend.keyframes])

@@ -10,6 +10,8 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.loop_closure import ClosedLoop, LoopTally
+from pipeline.slam.pose_graph import Edge
 
 
 @dataclass
@@ -21,6 +23,7 @@ class FrontendState:
     last_prior: torch.Tensor | None  # [4, 4] the device's camera-to-world at the last good frame
     lost_frames: list[int] = field(default_factory=list)  # positions in `poses` of the frames judged lost
     relocalised_frames: list[int] = field(default_factory=list)  # and of those relocalised
+    tracked_poses: torch.Tensor | None = None  # [F, 4, 4] as tracked, before keyframe corrections (None: `poses`)
 
     @property
     def frames_done(self) -> int:
@@ -37,6 +40,28 @@ class BackendState:
     rng_state: tuple[Any, ...]  # random.Random.getstate(): mapping's view picks
     generator_state: torch.Tensor  # torch.Generator.get_state() (uint8): keyframe sampling
     frames_seen: int  # frames passed to mapping, mapped or not
+    loops: LoopState | None = None  # loop closure's part (loops.enabled)
+
+
+@dataclass
+class LoopState:
+    """Loop closure's part of the mapping side: the keyframe pose graph, which node created each
+    Gaussian, and what loop closure did so far."""
+
+    creator: torch.Tensor  # [N] int64: per Gaussian, the node of the keyframe that created it (-1: none)
+    node_c2w: torch.Tensor  # [K, 4, 4] float64: every keyframe ever kept, camera-to-world as last known
+    node_positions: list[int]  # per node, its frame's position among the run's poses
+    odometry_information: torch.Tensor  # [K, 6, 6] float64: of the edge from node k-1 to node k (row 0 unused)
+    loops: list[Edge] = field(default_factory=list)  # loop edges (between nodes) the pose graph kept
+    tally: LoopTally = field(default_factory=LoopTally)
+    closed: list[ClosedLoop] = field(default_factory=list)
+
+    @staticmethod
+    def empty() -> LoopState:
+        f64 = torch.float64
+        return LoopState(
+            torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, 4, dtype=f64), [], torch.zeros(0, 6, 6, dtype=f64)
+        )
 
 
 @dataclass

@@ -76,7 +76,7 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["tracking"], "bad --set 'tracking'"),
         (["tracking=3"], "'tracking' is a section"),
         (["mapping.window=1"], "mapping.window must be >= 2"),
-        (["loops.enabled=true"], "loops.enabled: loop closure's parts are built and tested, but mapping does not"),
+        (["loops.enabled=true", "loops.max_candidates=0"], "loops.max_candidates must be >= 1"),
         (["tracking.method=icp"], "bad value for 'tracking.method': 'icp' (choose from adam, align)"),
         (["tracking.refine_iters=-1"], "tracking.refine_iters must be >= 0"),
         (["tracking.align_iters=4,0,2"], "tracking.align_iters takes 1 to 6 iteration counts"),

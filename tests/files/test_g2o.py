@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.files.g2o import G2O_ORDER, G2oEdge, g2o_text, write_g2o
+from pipeline.files.g2o import G2O_ORDER, G2oEdge, g2o_text
 from pipeline.geometry import invert_pose, se3_exp
 
 F64 = torch.float64
@@ -31,7 +31,7 @@ def test_gtsam_reads_back_the_graph_written(tmp_path: Path) -> None:
     gtsam = pytest.importorskip("gtsam", reason="loop closure's extra: pip install -e '.[loops]'")
     c2w, edges = _graph(torch.Generator().manual_seed(0))
     path = tmp_path / "graph.g2o"
-    write_g2o(path, c2w, edges)
+    path.write_text(g2o_text(c2w, edges))
     assert path.read_text() == g2o_text(c2w, edges)
     graph, values = gtsam.readG2o(str(path), True)
     assert values.size() == 4 and graph.size() == 4

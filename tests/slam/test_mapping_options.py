@@ -78,7 +78,7 @@ def test_several_views_per_step_render_as_many_views_in_fewer_steps() -> None:
     for per_step, expected in ((1, [1] * 6), (2, [2, 2, 2]), (4, [4, 2])):
         calls: list[int] = []
         config = MappingConfig(iters=6, views_per_step=per_step, prune_at=())
-        mapped = map_window(gaussians, keyframes, K, 10.0, random.Random(0), _settings(config, calls))
+        mapped = map_window(gaussians, keyframes, K, 10.0, random.Random(0), _settings(config, calls)).gaussians
         assert calls == expected  # the same 6 view renders, grouped per optimiser step
         assert torch.isfinite(mapped.colors).all() and not torch.equal(mapped.colors, gaussians.colors)
 
@@ -86,6 +86,6 @@ def test_several_views_per_step_render_as_many_views_in_fewer_steps() -> None:
 def test_mapping_with_selective_adam_leaves_unseen_gaussians_untouched() -> None:
     gaussians, keyframes = _scene()
     config = MappingConfig(iters=4, prune_at=(), optimizer="selective_adam")
-    mapped = map_window(gaussians, keyframes, K, 10.0, random.Random(0), _settings(config, []))
+    mapped = map_window(gaussians, keyframes, K, 10.0, random.Random(0), _settings(config, [])).gaussians
     assert torch.equal(mapped.colors[-1], gaussians.colors[-1]) and torch.equal(mapped.means[-1], gaussians.means[-1])
     assert not torch.equal(mapped.colors[:-1], gaussians.colors[:-1])

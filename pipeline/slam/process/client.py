@@ -24,6 +24,7 @@ import torch.multiprocessing as mp
 from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
+from pipeline.slam.loop_closure import closed_loop_line
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
@@ -208,6 +209,8 @@ class MappingProcess:
             self.to_mapping.put(m.UseGeneration(generation))
         elif isinstance(message, m.FrameMapped):
             self.mapped.append(message)
+            for loop in message.closed:
+                log.info(closed_loop_line(loop))
         elif isinstance(message, m.Refined):
             self.refinement_renders += message.renders
             self.refinement_s += message.seconds

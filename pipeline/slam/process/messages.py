@@ -15,9 +15,10 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.loop_closure import ClosedLoop
 from pipeline.slam.process.frame_ring import FrameSlot
 from pipeline.slam.process.shared_map import MapGeneration
-from pipeline.slam.state import BackendState
+from pipeline.slam.state import BackendState, LoopState
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,7 @@ class PackedBackendState:
     rng_state: tuple[Any, ...]
     generator_state: torch.Tensor
     frames_seen: int
+    loops: LoopState | None  # on the host
 
     @staticmethod
     def of(state: BackendState) -> PackedBackendState:
@@ -53,6 +55,7 @@ class PackedBackendState:
             state.rng_state,
             state.generator_state,
             state.frames_seen,
+            state.loops,
         )
 
     def unpacked(self) -> BackendState:
@@ -61,8 +64,9 @@ class PackedBackendState:
             for i, (index, position) in enumerate(zip(self.keyframe_indices, self.keyframe_positions))
         ]
         return BackendState(
-            self.gaussians, keyframes, self.scene_radius, self.rng_state, self.generator_state, self.frames_seen
-        )
+            self.gaussians, keyframes, self.scene_radius, self.rng_state, self.generator_state, self.frames_seen,
+            self.loops,
+        )  # fmt: skip
 
 
 # Tracking side -> mapping side.
@@ -148,6 +152,7 @@ class FrameMapped:
     added: int  # Gaussians added by its densification
     densify_s: float
     mapping_s: float
+    closed: tuple[ClosedLoop, ...] = ()  # loops closed at this frame (loops.enabled)
 
 
 @dataclass(frozen=True)

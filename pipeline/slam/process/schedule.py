@@ -133,7 +133,7 @@ class ProcessSplaTAM:
         self._saved = saved.mapping
         self._scene_radius = saved.mapping.scene_radius
         self._first_version = self.mapping.newest_version()
-        self.mapping.hold_newest(self._first_version)
+        self.frontend.follow(self.mapping.hold_newest(self._first_version).keyframes)
 
     def finish(self, final_renders: int) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders

@@ -179,8 +179,9 @@ class MapReader:
             for older in [g for g in self._generations if g < generation]:
                 del self._generations[older]  # the writer has moved on, and so has the reader now
         gaussians = Gaussians(*(getattr(slot.gaussians, n)[:count] for n in PARAMETER_NAMES))
+        c2w = slot.keyframe_c2w[:kept].clone()  # the slot is written again later; frames keep their anchors' poses
         keyframes = tuple(
-            KeyframePose(index, slot.keyframe_c2w[row], position)
+            KeyframePose(index, c2w[row], position)
             for row, (index, position) in enumerate(slot.keyframe_index[:kept].tolist())
         )
         self.held = MapVersion(number, gaussians, None, keyframes)
