@@ -57,13 +57,12 @@ for part in "$@"; do
                  done
                  python3 bench/live_latency.py --out "$out/live_reconnect" --size 256x192 --seconds 60 \
                    --disconnect-at 25 --set live.retry_initial_s=3 2>&1 | tail -n 4 ;;
-    live-process) export TORCHINDUCTOR_CACHE_DIR=/tmp/inductor  # the first run fills it (a fresh machine), the rest find it warm
-                  python3 bench/live_latency.py --out "$out/cold" --size 640x480 --seconds 45 --set slam.schedule=process 2>&1 | tail -n 3
-                  for schedule in process sequential; do
-                    python3 bench/live_latency.py --out "$out/$schedule" --size 640x480 --seconds 90 --set slam.schedule=$schedule 2>&1 | tail -n 3
-                  done
-                  python3 bench/live_latency.py --out "$out/soak" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 \
-                    --set slam.schedule=process 2>&1 | tail -n 3 ;;
+    live-process) for schedule in process sequential; do  # after a bench part: the compile cache is warm, as on a second session
+                    timeout 200 python3 bench/live_latency.py --out "$out/$schedule" --size 640x480 --seconds ${LIVE_S:-90} \
+                      --set slam.schedule=$schedule 2>&1 | tail -n 3
+                  done ;;
+    loops) bench synthetic-loops synthetic-trap --presets tiny --variants default,loops --stem loops_tiny
+           bench synthetic-loops --presets small --variants default,loops --stem loops_small ;;
     soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;

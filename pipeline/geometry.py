@@ -73,21 +73,6 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     return rotation.unflatten(-1, (3, 3))
 
 
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton products a * b of quaternions [..., 4] (w, x, y, z): the rotation b, then a."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
-
-
 def pose_matrix(quat: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """Quaternion [4] (normalised here) and translation [3] -> [4, 4]."""
     top = torch.cat([quat_to_rotmat(quat), trans[:, None]], dim=1)

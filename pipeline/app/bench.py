@@ -53,6 +53,8 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "final-iters": ("mapping.final_iters=600",),  # then 600 view renders over every keyframe
     "process-final": ("slam.schedule=process", "mapping.final_iters=600"),
     "process-no-sample": ("slam.schedule=process", "run.kernel_sample=off"),  # the kernel sampler's own cost
+    "loops": ("loops.enabled=true",),  # loop closure on the keyframe pose graph
+    "process-loops": ("slam.schedule=process", "loops.enabled=true"),
 }
 
 
@@ -62,6 +64,14 @@ SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
     "synthetic-fast": ("synthetic.speed=1.0",),  # the same room, the camera 3.3x faster (1 m/s)
     "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
         "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",
+        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
+    ),
+    "synthetic-loops": (  # TUM-like, twice round the room at 0.75 m/s: a long sequence that revisits places
+        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.loops=2", "synthetic.speed=0.75",
+        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
+    ),
+    "synthetic-trap": (  # TUM-like in the room of look-alike halves: no place is revisited
+        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.trap=true", "synthetic.speed=0.75",
         "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
     ),
 }  # fmt: skip
@@ -132,8 +142,9 @@ def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
 
 
 def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
-    t, runtime, ate, render = metrics.time, metrics.runtime, metrics.ate, metrics.render
+    t, runtime, ate, render, loops = metrics.time, metrics.runtime, metrics.ate, metrics.render, metrics.loops
     assert t is not None, "a finished run is timed"
+    before_loops, closed = metrics.ate_as_tracked, loops.closed if loops else []
     process = metrics.mapping_process  # the process schedule: mapping's own times, per frame mapped
     before = metrics.render_before_final_iters
     return {
@@ -163,6 +174,13 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "depth_l1_cm": render.depth_l1_cm if render else None,
         "lost_frames": metrics.lost_frames,
         "unmapped_frames": metrics.unmapped_frames,
+        "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
+        "loops_accepted": loops.accepted if loops else None,
+        "loops_rejected": loops.rejected if loops else None,
+        "loops_closed": len(closed) if loops else None,
+        "loop_search_ms": loops.search_ms if loops else None,
+        "loop_correct_ms": max((c.correct_ms for c in closed), default=None),
+        "loop_published_ms": max((c.published_ms for c in closed), default=None),
         "warmup_frames_excluded": t.warmup_frames_excluded,
         "error": None,
     }
@@ -243,6 +261,8 @@ COLUMNS = [
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
+    ("ate_before_loops_cm", "{:.2f}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"), ("loops_closed", "{}"),
+    ("loop_search_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
 ]  # fmt: skip
 
 

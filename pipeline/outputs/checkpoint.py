@@ -180,7 +180,7 @@ def _loop_state_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         node_positions=[int(p) for p in header["node_positions"]],
         odometry_information=tensors["loops.odometry_information"],
         loops=edges,
-        tally=LoopTally(**{k: int(v) for k, v in header["tally"].items()}),
+        tally=LoopTally(**{k: type(getattr(LoopTally(), k))(v) for k, v in header["tally"].items()}),
         closed=closed,
     )
 

@@ -144,6 +144,10 @@ class LoopRecord:
     failed_verification: int = 0
     unconfirmed: int = 0
     dropped_by_graph: int = 0
+    searches: int = 0  # keyframes searched
+    search_ms: float | None = (
+        None  # mean per keyframe searched: the odometry edge's alignment, candidates, verification
+    )
     closed: list[ClosedLoopRow] = field(default_factory=list)
 
     @staticmethod
@@ -156,6 +160,8 @@ class LoopRecord:
             failed_verification=tally.failed_verification,
             unconfirmed=tally.unconfirmed,
             dropped_by_graph=tally.dropped_by_graph,
+            searches=tally.searches,
+            search_ms=1000 * tally.search_s / tally.searches if tally.searches else None,
             closed=[ClosedLoopRow.of(loop) for loop in closed],
         )
 

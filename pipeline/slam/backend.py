@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import random
-import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -21,10 +20,11 @@ from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.densify import densify_mask
 from pipeline.slam.frontend import TrackedFrame, TrackerMark
-from pipeline.slam.gaussian_map import concatenate, copied, gathered, most_opaque, moved_rigidly, seed_gaussians
+from pipeline.slam.gaussian_map import concatenate, copied, gathered, most_opaque, seed_gaussians
 from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
 from pipeline.slam.loop_closer import Correction, LoopCloser
 from pipeline.slam.loop_closure import ClosedLoop, closed_loop_line
+from pipeline.slam.map_correction import move_map
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping import MapSettings, WindowPlan, map_window, optimise_window
 from pipeline.slam.results import FrameResult
@@ -173,7 +173,8 @@ class MappingBackend:
     def _correct(self, correction: Correction) -> None:
         """Move the map and the stored keyframes with a closed loop's corrected poses."""
         assert self.gaussians is not None and self.loops is not None
-        self.gaussians = moved_rigidly(self.gaussians, self.loops.state.creator, correction.node_corrections)
+        creator = self.loops.state.creator
+        self.gaussians = move_map(self.gaussians, creator, correction.old_c2w, correction.node_c2w)
         node_of = {p: n for n, p in enumerate(self.loops.state.node_positions)}
         self.keyframes = [
             replace(k, c2w=correction.node_c2w[node_of[k.pose.position]].to(k.c2w)) for k in self.keyframes
@@ -185,8 +186,7 @@ class MappingBackend:
         assert self.loops is not None
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)  # once per loop closed: its times are the GPU's too
-        closed = replace(correction.closed, published_s=time.perf_counter() - correction.started)
-        self.loops.state.closed.append(closed)
+        closed = self.loops.published(correction)
         log.info(closed_loop_line(closed))  # a mapping process configures no logging: its client logs the report
 
     def refine(self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0) -> int:

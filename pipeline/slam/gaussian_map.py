@@ -7,7 +7,7 @@ from dataclasses import fields
 import torch
 
 from pipeline.config import GaussianConfig
-from pipeline.geometry import backproject, pixel_grid, quat_multiply, rotmat_to_quat
+from pipeline.geometry import backproject, pixel_grid
 from pipeline.render.types import Gaussians
 
 
@@ -77,24 +77,6 @@ def most_opaque(gaussians: Gaussians, count: int) -> torch.Tensor | None:
     if len(gaussians) <= count:
         return None
     return torch.topk(gaussians.opacity_logits.detach(), count, sorted=False).indices
-
-
-def moved_rigidly(gaussians: Gaussians, owner: torch.Tensor, corrections: torch.Tensor) -> Gaussians:
-    """Each Gaussian moved by the rigid correction of its owner: `owner` [N] int64 indexes
-    `corrections` [K, 4, 4] (world -> world, applied on the left); -1 stays. Means are
-    transformed, rotations composed with the correction's (scales, opacities and colours stay)."""
-    moving = owner >= 0
-    correction = corrections.to(gaussians.means)[owner.clamp(min=0)]  # [N, 4, 4]
-    means = (correction[:, :3, :3] @ gaussians.means.detach()[:, :, None])[:, :, 0] + correction[:, :3, 3]
-    turns = torch.stack([rotmat_to_quat(c[:3, :3]) for c in corrections.double().cpu()])  # [K, 4]
-    quats = quat_multiply(turns.to(gaussians.quats)[owner.clamp(min=0)], gaussians.quats.detach())
-    return Gaussians(
-        means=torch.where(moving[:, None], means, gaussians.means.detach()),
-        quats=torch.where(moving[:, None], quats, gaussians.quats.detach()),
-        log_scales=gaussians.log_scales.detach(),
-        opacity_logits=gaussians.opacity_logits.detach(),
-        colors=gaussians.colors.detach(),
-    )
 
 
 def prune_mask(gaussians: Gaussians, min_opacity: float, max_scale: float) -> torch.Tensor:

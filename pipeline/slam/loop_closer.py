@@ -23,10 +23,10 @@ from dataclasses import dataclass, replace
 import torch
 
 from pipeline.config import LoopConfig, TrackingConfig
-from pipeline.geometry import invert_pose
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loop_candidates import descriptor
 from pipeline.slam.loop_closure import ClosedLoop, detect_loops, verify
+from pipeline.slam.map_correction import corrections
 from pipeline.slam.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
 from pipeline.slam.state import LoopState
 
@@ -35,10 +35,10 @@ F64 = torch.float64
 
 @dataclass(frozen=True)
 class Correction:
-    """A loop closed: per node, the world -> world correction to apply, and the record."""
+    """A loop closed: every node's pose before and after, and the record."""
 
-    node_corrections: torch.Tensor  # [K, 4, 4] float64: c2w_new @ inv(c2w_old) per node
-    node_c2w: torch.Tensor  # [K, 4, 4] float64: the corrected poses
+    old_c2w: torch.Tensor  # [K, 4, 4] float64 camera-to-world per node, before
+    node_c2w: torch.Tensor  # [K, 4, 4] float64: after (the optimum)
     closed: ClosedLoop  # its published_s still 0
     started: float  # time.perf_counter() when the detection began
 
@@ -94,14 +94,16 @@ class LoopCloser:
         state.odometry_information = torch.cat(
             [state.odometry_information, self._odometry(keyframes, intrinsics, node)[None]]
         )
-        self._descriptors[current.pose.position] = descriptor(current.color)
-        stored = {k.pose.position: k for k in keyframes}
-        self._descriptors = {p: d for p, d in self._descriptors.items() if p in stored}  # dropped keyframes' go
-        descriptors = torch.stack([self._descriptors[k.pose.position] for k in keyframes])
+        known = self._descriptors  # those of keyframes dropped from the store go; after a resume they are made again
+        self._descriptors = {}
+        for keyframe in keyframes:
+            position = keyframe.pose.position
+            self._descriptors[position] = known[position] if position in known else descriptor(keyframe.color)
+        descriptors = torch.stack(list(self._descriptors.values()))
         generator = torch.Generator().manual_seed(self.seed + node)  # no state to keep: one draw per node
         pixels = sample_valid_pixels(current.depth, self.samples, generator)
         detection = detect_loops(keyframes, descriptors, intrinsics, pixels, self.config, self.tracking)
-        state.tally = state.tally.counted(detection)
+        state.tally = state.tally.counted(detection, time.perf_counter() - started)
         node_of = {p: n for n, p in enumerate(state.node_positions)}
         found = [
             replace(edge, first=node_of[keyframes[edge.first].pose.position], second=node) for edge in detection.edges()
@@ -115,14 +117,20 @@ class LoopCloser:
         state.loops = [edge for edge in solution.graph.edges if edge.loop]
         if not solution.changed:
             return None
-        corrections = solution.c2w @ invert_pose(graph.c2w)
         state.node_c2w = solution.c2w
-        largest = max((motion_size(c) for c in corrections), key=lambda size: size.translation_m)
+        moves = corrections(graph.c2w, solution.c2w)
+        largest = max((motion_size(c) for c in moves), key=lambda size: size.translation_m)
         kept_now = [e for e in solution.kept if e.second == node]
         matched = tuple(self._frame_of(e.first, keyframes) for e in kept_now)
         seconds = time.perf_counter()
         closed = ClosedLoop(current.index, matched, largest, detected - started, seconds - detected, 0.0)
-        return Correction(corrections, solution.c2w, closed, started)
+        return Correction(graph.c2w, solution.c2w, closed, started)
+
+    def published(self, correction: Correction) -> ClosedLoop:
+        """The corrected map of `correction` is published now: -> its record, kept in the state."""
+        closed = replace(correction.closed, published_s=time.perf_counter() - correction.started)
+        self.state.closed.append(closed)
+        return closed
 
     def _frame_of(self, node: int, keyframes: list[Keyframe]) -> int:
         """The frame index of a node's keyframe (its position where it left the store)."""

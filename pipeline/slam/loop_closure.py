@@ -109,11 +109,16 @@ class LoopTally:
     failed_verification: int = 0  # the alignment judged itself unsound
     unconfirmed: int = 0  # verified, but no second candidate agreed
     dropped_by_graph: int = 0  # accepted, then left out by the pose graph's optimum
+    searches: int = 0  # keyframes searched (every keyframe kept)
+    search_s: float = 0.0  # seconds over all searches: the odometry edge's alignment, candidates, verification
 
-    def counted(self, detection: LoopDetection) -> LoopTally:
+    def counted(self, detection: LoopDetection, seconds: float) -> LoopTally:
+        """With one keyframe's search, which took `seconds`."""
         verdicts = [check.verdict for check in detection.checks]
         return replace(
             self,
+            searches=self.searches + 1,
+            search_s=self.search_s + seconds,
             detected=self.detected + detection.detected,
             verified=self.verified + detection.verified,
             accepted=self.accepted + detection.accepted,

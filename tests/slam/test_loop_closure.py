@@ -21,6 +21,7 @@ from pipeline.geometry import invert_pose, se3_exp
 from pipeline.slam.align_tracker import SolveReport
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loop_candidates import descriptor
+from pipeline.slam.loop_closer import LoopCloser
 from pipeline.slam.loop_closure import LoopDetection, LoopTally, Verdict, Verification, detect_loops, verdicts, verify
 from pipeline.slam.pose_graph import edge_residual, empty_graph, fixed_information, optimise, with_keyframe, with_loop
 from pipeline.sources.datasets.loader import open_dataset
@@ -99,7 +100,7 @@ def test_the_loop_is_detected_verified_accepted_and_the_graph_takes_the_drift_ba
     detections = search(loop_sequence)
     tally = LoopTally()
     for detection in detections:
-        tally = tally.counted(detection)
+        tally = tally.counted(detection, 0.0)
     assert tally.accepted >= 1 and tally.verified >= tally.accepted and tally.detected >= tally.verified
     assert tally.rejected == tally.detected - tally.accepted == tally.failed_verification + tally.unconfirmed
     truth = loop_sequence.truth
@@ -196,3 +197,48 @@ def test_a_verified_candidate_is_accepted_only_when_another_verified_one_agrees(
     assert [v for v, _ in verdicts([sound], [_pose(0.0)], CONFIG)] == [Verdict.UNCONFIRMED]  # alone
     turned = verdicts([sound, sound], [_pose(0.0), _pose(0.0, 5.0)], CONFIG)  # 5 degrees apart
     assert [v for v, _ in turned] == [Verdict.UNCONFIRMED] * 2
+
+
+def close_loops(sequence: Sequence) -> tuple[LoopCloser, torch.Tensor, int]:
+    """Keyframes kept one by one as the mapping side keeps them, two Gaussians seeded by each
+    (`LoopCloser.seeded`), the store's poses set to each correction (as `MappingBackend` does);
+    -> the closer, the final keyframe poses [K, 4, 4] float64 and the corrections made."""
+    closer = LoopCloser(CONFIG, TRACKING, samples=1600, seed=0)
+    keyframes: list[Keyframe] = []
+    corrected = 0
+    for keyframe in sequence.keyframes:
+        closer.seeded(2, keeps=True, device=torch.device("cpu"))
+        keyframes.append(keyframe)
+        correction = closer.keyframe_kept(keyframes, sequence.intrinsics)
+        if correction is not None:
+            corrected += 1
+            assert closer.published(correction).published_s >= correction.closed.detect_s
+            assert torch.equal(correction.node_c2w[0], correction.old_c2w[0])  # the first keyframe holds the frame
+            keyframes = [replace(k, c2w=correction.node_c2w[n].float()) for n, k in enumerate(keyframes)]
+    return closer, torch.stack([k.c2w.double() for k in keyframes]), corrected
+
+
+def test_the_mapping_sides_loop_closer_corrects_the_drift_on_a_loop(loop_sequence: Sequence) -> None:
+    closer, corrected, corrections = close_loops(loop_sequence)
+    state, truth = closer.state, loop_sequence.truth
+    assert corrections >= 1 and len(state.closed) == corrections and state.tally.accepted >= 1
+    assert state.node_positions == list(range(len(truth)))
+    assert torch.equal(state.creator, torch.arange(len(truth)).repeat_interleave(2))  # each keyframe's own two
+    assert all(edge.closes_loop for edge in state.loops) and len(state.loops) >= 1
+    before = ate(torch.stack([k.c2w.double() for k in loop_sequence.keyframes]), truth)
+    assert before > 0.03 and ate(corrected, truth) < 0.75 * before
+    loop = state.closed[0]
+    assert loop.correction.translation_m > 0.01 and loop.detect_s > 0 and loop.matched
+    # an odometry edge's information is an alignment's (not the fixed fallback) where it verified
+    fallback = fixed_information(CONFIG.odometry_sigma_m, CONFIG.odometry_sigma_deg)
+    assert not torch.equal(state.odometry_information[1], fallback)
+    assert torch.equal(state.odometry_information[0], torch.zeros(6, 6, dtype=F64))
+
+
+def test_the_loop_closer_moves_nothing_in_the_trap_room_or_with_a_single_keyframe(trap_sequence: Sequence) -> None:
+    closer, corrected, corrections = close_loops(trap_sequence)
+    assert corrections == 0 and closer.state.tally.accepted == 0 and not closer.state.closed
+    assert torch.equal(corrected, torch.stack([k.c2w.double() for k in trap_sequence.keyframes]))
+    single = LoopCloser(CONFIG, TRACKING, samples=1600, seed=0)
+    assert single.keyframe_kept(trap_sequence.keyframes[:1], trap_sequence.intrinsics) is None
+    assert single.state.tally.detected == 0 and single.state.tally.searches == 1 and single.state.node_positions == [0]

@@ -82,14 +82,16 @@ def test_a_lost_frame_is_relocalised_from_a_keyframe_only_when_candidates_are_al
     holds only the first keyframe's pose. With candidates the frame is tracked from it (and the
     result says so); with none it stays lost, frame after frame."""
     keyframes = tuple(
-        Keyframe(i, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), shifted(0.5 * i)) for i in range(5)
-    )
+        Keyframe(i, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), shifted(0.5 * i), 100 + i)
+        for i in range(5)
+    )  # at positions of no frame tracked here (a frame at a keyframe's position takes the keyframe's pose)
     truth = shifted(0.03)
     for candidates, lost in ((2, [False, False, False]), (0, [True, True, True])):
         front = TrackingFrontend(
             BasinTracker(truth, 0.1), replace(TrackingConfig(), relocalise_candidates=candidates), CPU
         )
         front.poses, front.timestamps, front.states = [shifted(2.0)], [0.0], [TrackingState.TRACKED]
+        front.tracked, front.anchors = list(front.poses), [None]
         front.last_good = 0
         results = [front.track(frame(i), version(keyframes)).result for i in range(1, 4)]
         assert [bool(r.lost) for r in results] == lost
