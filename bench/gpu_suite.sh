@@ -3,7 +3,7 @@
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
 #   bash bench/gpu_suite.sh OUT_DIR parity schedules-tiny schedules-small schedules-base process-options ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
 # The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine"),
-# and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/.
+# and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/; loops GTSAM's in .whl-loops/.
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.
 set -uo pipefail
@@ -13,7 +13,7 @@ out=$(mktemp -d)
 mkdir -p "$dest"
 trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
 trap 'exit 143' TERM INT
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl 2>/dev/null) || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
 tum=.data/tum_fr1_xyz_37
 export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
@@ -62,7 +62,7 @@ for part in "$@"; do
                       --set slam.schedule=$schedule 2>&1 | tail -n 3
                   done ;;
     loops) bench synthetic-loops synthetic-trap --presets tiny --variants default,loops --stem loops_tiny
-           bench synthetic-loops --presets small --variants default,loops --stem loops_small ;;
+           bench synthetic-loops --presets small --variants ${SMALL_VARIANTS:-default,loops} --stem loops_small ;;
     soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
     schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
