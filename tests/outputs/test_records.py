@@ -62,10 +62,12 @@ def test_loop_closure_s_outcome_round_trips_through_json() -> None:
 
 def test_a_loop_record_is_the_tally_and_each_closed_loop_in_cm_degrees_and_ms() -> None:
     tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1,
-                      dropped_by_graph=1)  # fmt: skip
+                      dropped_by_graph=1, searches=4, search_s=0.2)  # fmt: skip
     loops = LoopRecord.of(tally, [_closed_loop(40, (3, 11))])
-    counts = {k: v for k, v in dataclasses.asdict(loops).items() if k != "closed"}
-    assert counts == dataclasses.asdict(tally)
+    counts = {k: v for k, v in dataclasses.asdict(loops).items() if k not in ("closed", "search_ms")}
+    assert counts == {k: v for k, v in dataclasses.asdict(tally).items() if k != "search_s"}
+    assert loops.search_ms == pytest.approx(50.0)  # the mean per keyframe searched
+    assert LoopRecord.of(LoopTally(), []).search_ms is None
     (row,) = loops.closed
     assert row == ClosedLoopRow(40, [3, 11], correction_cm=2.5, correction_deg=1.5, detect_ms=40.0,
                                 correct_ms=125.0, published_ms=500.0)  # fmt: skip
