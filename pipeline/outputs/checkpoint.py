@@ -52,6 +52,8 @@ def checkpoint_bytes(checkpoint: Checkpoint, run: RunDescription) -> bytes:
         tensors["last_prior"] = tracking.last_prior
     if tracking.tracked_poses is not None:
         tensors["tracked_poses"] = tracking.tracked_poses
+    if mapping.intrinsics is not None:
+        tensors["intrinsics"] = mapping.intrinsics
     if mapping.loops is not None:
         tensors.update(_loop_tensors(mapping.loops))
     header = {
@@ -131,6 +133,7 @@ def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         generator_state=tensors["generator_state"],
         frames_seen=int(header.get("frames_mapped", header["frames_done"])),  # absent: mapping saw every frame
         loops=_loop_state_of(header["loops"], tensors) if "loops" in header else None,
+        intrinsics=tensors.get("intrinsics"),  # absent: written before it was kept
     )
     if not 0 <= mapping.frames_seen <= tracking.frames_done:
         raise ValueError(f"{mapping.frames_seen} frames mapped of {tracking.frames_done}")
@@ -204,6 +207,8 @@ def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
         _check(f"keyframes.{i}.color_u8", k.color_u8, (*size, 3), torch.uint8)
         _check(f"keyframes.{i}.depth", k.depth, size)
         _check(f"keyframes.{i}.c2w", k.c2w, (4, 4))
+    if checkpoint.mapping.intrinsics is not None:
+        _check("intrinsics", checkpoint.mapping.intrinsics, (3, 3))
     if checkpoint.tracking.tracked_poses is not None:
         _check("tracked_poses", checkpoint.tracking.tracked_poses, (checkpoint.frames_done, 4, 4))
     if (loops := checkpoint.mapping.loops) is not None:

@@ -77,6 +77,7 @@ class MappingBackend:
             generator_state=self.generator.get_state(),
             frames_seen=self.frames_seen,
             loops=None if self.loops is None else self._loop_state(),
+            intrinsics=None if self.intrinsics is None else self.intrinsics.cpu(),
         )
 
     def _loop_state(self) -> LoopState:
@@ -104,6 +105,7 @@ class MappingBackend:
         self.last_keyframe_seen = (saved.frames_seen - 1) // every * every  # the cadence of an unbroken run
         self.mark = mark
         self.latest = None
+        self.intrinsics = None if saved.intrinsics is None else saved.intrinsics.to(dev)
         if self.loops is not None:
             self.loops.restore(saved.loops, len(self.gaussians), dev)
         self.publish()

@@ -41,6 +41,7 @@ class BackendState:
     generator_state: torch.Tensor  # torch.Generator.get_state() (uint8): keyframe sampling
     frames_seen: int  # frames passed to mapping, mapped or not
     loops: LoopState | None = None  # loop closure's part (loops.enabled)
+    intrinsics: torch.Tensor | None = None  # [3, 3] the frames' camera, once a frame was mapped (refinement needs it)
 
 
 @dataclass

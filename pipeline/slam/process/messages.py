@@ -36,6 +36,7 @@ class PackedBackendState:
     generator_state: torch.Tensor
     frames_seen: int
     loops: LoopState | None  # on the host
+    intrinsics: torch.Tensor | None  # [3, 3]
 
     @staticmethod
     def of(state: BackendState) -> PackedBackendState:
@@ -56,6 +57,7 @@ class PackedBackendState:
             state.generator_state,
             state.frames_seen,
             state.loops,
+            state.intrinsics,
         )
 
     def unpacked(self) -> BackendState:
@@ -65,7 +67,7 @@ class PackedBackendState:
         ]
         return BackendState(
             self.gaussians, keyframes, self.scene_radius, self.rng_state, self.generator_state, self.frames_seen,
-            self.loops,
+            self.loops, self.intrinsics,
         )  # fmt: skip
 
 

@@ -46,6 +46,7 @@ class ProcessSplaTAM:
         self._first_version = 1  # versions from before a warm-up's reset do not count
         self._saved: BackendState | None = None  # the last mapping state received (a checkpoint's)
         self._scene_radius = 0.0  # metres, from the first frame (for a checkpoint without mapping's state)
+        self._intrinsics: torch.Tensor | None = None  # [3, 3] on the host, likewise
 
     @property
     def frames_done(self) -> int:
@@ -80,6 +81,7 @@ class ProcessSplaTAM:
         tracked = self.frontend.track(frame, latest)
         if first:
             self._scene_radius = scene_radius_of(frame.depth, self.config)
+            self._intrinsics = frame.intrinsics.cpu()
         result = tracked.result
         position = self.frontend.frames_done - 1
         result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
@@ -123,8 +125,9 @@ class ProcessSplaTAM:
         if saved is None:
             rng, generator = random.Random(self.config.run.seed), torch.Generator().manual_seed(self.config.run.seed)
             return BackendState(
-                copied(held.gaussians, "cpu"), [], self._scene_radius, rng.getstate(), generator.get_state(), mapped
-            )
+                copied(held.gaussians, "cpu"), [], self._scene_radius, rng.getstate(), generator.get_state(), mapped,
+                intrinsics=self._intrinsics,
+            )  # fmt: skip
         return replace(saved, gaussians=copied(held.gaussians, "cpu"), frames_seen=max(saved.frames_seen, mapped))
 
     def restore(self, saved: Checkpoint) -> None:
@@ -132,6 +135,7 @@ class ProcessSplaTAM:
         self.mapping.restore(saved.mapping)
         self._saved = saved.mapping
         self._scene_radius = saved.mapping.scene_radius
+        self._intrinsics = saved.mapping.intrinsics
         self._first_version = self.mapping.newest_version()
         self.frontend.follow(self.mapping.hold_newest(self._first_version).keyframes)
 
