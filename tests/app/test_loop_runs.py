@@ -8,6 +8,7 @@ tests/slam/test_loop_closure.py's, on drifted keyframes); these check the plumbi
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -86,3 +87,13 @@ def test_loop_closure_state_survives_a_resume(loop_room: Path, tmp_path: Path) -
     assert state.node_positions[: len(before.node_positions)] == before.node_positions
     assert len(state.node_positions) > len(before.node_positions)
     assert state.tally.detected >= before.tally.detected
+
+
+def test_loop_closure_without_gtsam_is_one_line_naming_the_extra(
+    loop_room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "gtsam", None)  # `import gtsam` fails as if it were not installed
+    assert main(["run", str(loop_room), "--output", str(tmp_path), "--name", "r", *LOOPS]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "gtsam" in error[0] and "'loops' extra" in error[0]
+    assert not (tmp_path / "r").exists()  # refused before anything was written

@@ -189,3 +189,28 @@ def test_a_jump_back_to_the_start_is_recovered_with_relocalisation(tmp_path: Pat
     for r in after:
         assert r.c2w_gt is not None
         assert float(torch.linalg.norm(r.c2w[:3, 3] - r.c2w_gt[:3, 3])) < 0.12
+
+
+def test_frames_follow_the_keyframe_they_were_tracked_after() -> None:
+    """A frame's pose moves with its anchor (the newest keyframe of the version it was tracked
+    against): unchanged keyframes leave every pose the very tensor tracking gave; a corrected one
+    moves its frames by its correction, the next guess with them, and the poses as tracked stay."""
+    truth = [shifted(0.01 * i) for i in range(4)]
+    tracker = StubTracker([(pose, "") for pose in truth[1:]])
+    front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
+    front.track(frame(0), None)
+    keyframe = Keyframe(0, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), front.poses[0], 0)
+    for i in (1, 2):
+        front.track(frame(i), version((keyframe,)))
+    assert all(a is b for a, b in zip(front.poses_with([keyframe.pose]), front.poses))
+    correction = shifted(0.5)
+    moved = replace(keyframe, c2w=correction @ keyframe.c2w)
+    followed = front.poses_with([moved.pose])
+    for position in (1, 2):
+        torch.testing.assert_close(followed[position], correction @ front.poses[position])
+    torch.testing.assert_close(followed[0], moved.c2w)
+    front.track(frame(3), version((moved,)))
+    guess = tracker.guesses[-1]  # constant velocity from the corrected poses of frames 1 and 2
+    torch.testing.assert_close(guess, correction @ shifted(0.03))
+    assert front.state().tracked_poses is not None
+    torch.testing.assert_close(front.state().tracked_poses, torch.stack([torch.eye(4), *truth[1:]]))
