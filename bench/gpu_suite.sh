@@ -43,13 +43,13 @@ for part in "$@"; do
              bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --variants adam --stem tracker_base
              python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     tracker-tiny) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny --set synthetic.frames=100 \
-                    --variants adam,align,adam-overlapped,align-overlapped --stem tracker_tiny ;;
+                    --variants adam,align,process --stem tracker_tiny ;;
     tracker-small) bench synthetic synthetic-fast synthetic-tum "$tum" --presets small --set synthetic.frames=100 \
-                     --variants adam,align,align-overlapped --stem tracker_small ;;
+                     --variants adam,align,process --stem tracker_small ;;
     tracker-base) bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --set synthetic.frames=100 \
                     --variants adam --stem tracker_base ;;
     align-cost) python3 bench/align_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
-    spread) bench synthetic --presets tiny --set synthetic.frames=100 --variants adam,align-overlapped --repeats 3 --stem spread_tiny ;;
+    spread) bench synthetic --presets tiny --set synthetic.frames=100 --variants adam,process --repeats 3 --stem spread_tiny ;;
     live-age) for size in 256x192 640x480; do python3 bench/live_latency.py --out "$out" --size $size --seconds 60 2>&1 | tail -n 4; done ;;
     live-warmup) for w in off on; do  # an empty compile cache per run: the first steps as on a fresh machine
                    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) python3 bench/live_latency.py --out "$out/live_warmup_$w" \
@@ -65,12 +65,8 @@ for part in "$@"; do
            bench synthetic-loops --presets small --variants ${SMALL_VARIANTS:-default,loops} --stem loops_small ;;
     soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;
     tiny|small|base) bench synthetic --presets "$part" --stem "$part" ;;
-    schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,overlapped --repeats 2 --stem schedule ;;
+    schedule) bench synthetic synthetic-tum "$tum" --presets tiny,small --variants sequential,process --repeats 2 --stem schedule ;;
     mapping) bench synthetic --presets tiny --variants default,views2,views3,selective-adam --stem mapping_options ;;
-    profile-overlap) python3 -m pipeline run --preset tiny --profile --quiet --output /tmp/profile --name overlapped \
-                       --set synthetic.frames=60 --set slam.schedule=overlapped 2>&1 | tail -n 3
-                     cp /tmp/profile/overlapped/profile.txt "$out/profile_tiny_overlapped.txt"
-                     cp /tmp/profile/overlapped/metrics.json "$out/profile_tiny_overlapped.json" ;;
     tum) bench synthetic-tum --presets tum --stem tum_synthetic ;;
     ssim) python3 bench/ssim_blur.py --out "$out" 2>&1 | tail -n 20 ;;
     mapping-parity) python3 bench/mapping_parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
@@ -81,13 +77,13 @@ for part in "$@"; do
                        --stem schedules_tiny
                      bench "$tum" --presets base --variants sequential --stem schedules_base ;;
     schedules-tiny) bench synthetic-tum "$tum" synthetic --presets tiny \
-                      --variants sequential,overlapped-views2,process,process-views2 --stem schedules_tiny ;;
+                      --variants sequential,process,process-views2 --stem schedules_tiny ;;
     schedules-small) bench synthetic-tum "$tum" synthetic --presets small --variants sequential,process --stem schedules_small ;;
     schedules-base) bench synthetic-tum "$tum" --presets base --variants sequential --stem schedules_base ;;
     process-options) bench synthetic-tum --presets tiny \
                        --variants process,process-lead1,process-no-refine,process-fixed-poses,process-no-sample,process-final \
                        --stem process_options ;;
-    smoke) bench synthetic --presets tiny --set synthetic.frames=60 --variants sequential,overlapped,views2,selective-adam --stem smoke ;;
+    smoke) bench synthetic --presets tiny --set synthetic.frames=60 --variants sequential,process,views2,selective-adam --stem smoke ;;
     exports) python3 -m pipeline run --preset tiny --quiet --output /tmp/exports --name tiny 2>&1 | tail -n 3
              for fmt in nerfstudio splat ply pointcloud mesh; do  # mesh needs open3d (the mesh extra) there
                start=$SECONDS

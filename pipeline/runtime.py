@@ -81,7 +81,7 @@ class Graph:
 
     source: Source
     upload: Callable[[Frame], UploadedFrame]
-    slam: list[ThreadedStage]  # one (sequential) or tracking then mapping (overlapped)
+    slam: ThreadedStage  # SLAM per frame, with its observers
     sink: ResultSink
     queue_size: int = 4
     decode_workers: int = 2
@@ -95,15 +95,14 @@ class Graph:
     def dropped(self) -> dict[str, int]:
         """Frames dropped so far, by where: each queue, and a live SLAM stage's start."""
         drops = {name: queue.dropped for name, queue in self.queues.items()}
-        drops.update({f"{stage.name}_start": stage.dropped for stage in self.slam})
+        drops[f"{self.slam.name}_start"] = self.slam.dropped
         return {name: count for name, count in drops.items() if count}
 
 
 def _finish_report(graph: Graph, loader: str, wall: float, interrupted: bool, stats: list[StageStats]) -> RuntimeReport:
     report = RuntimeReport(loader, len(graph.sink.results), wall, interrupted)
     report.stages = {s.name: s.summary() for s in stats}
-    spans = graph.slam[0].spans  # the stage that takes frames from the upload: tracking, when overlapped
-    report.gpu_gaps_ms = spans.gaps_ms()
+    report.gpu_gaps_ms = graph.slam.spans.gaps_ms()
     return report
 
 
@@ -146,10 +145,8 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     frames: StageQueue[Any] = StageQueue(q_in, graph.source_policy)
     uploaded: StageQueue[Any] = StageQueue(q_in, graph.source_policy)
     results: StageQueue[Any] = StageQueue(4 * q)
-    between = [StageQueue[Any](q) for _ in graph.slam[1:]]  # tracked frames, when overlapped
     graph.queues.update(source=refs, decoded=frames, uploaded=uploaded, results=results)
-    graph.queues.update({f"{stage.name}_inbox": queue for stage, queue in zip(graph.slam[1:], between)})
-    stats = [StageStats("decode"), StageStats("upload")] + [StageStats(stage.name) for stage in graph.slam]
+    stats = [StageStats("decode"), StageStats("upload"), StageStats(graph.slam.name)]
     pools = [
         ThreadPoolExecutor(graph.decode_workers, thread_name_prefix="decode"),
         ThreadPoolExecutor(1, thread_name_prefix="upload"),
@@ -162,14 +159,10 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
                 group.create_task(transform_stage("decode", graph.source.decode, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
             ]
-            inboxes, outboxes = [uploaded, *between], [*between, results]
-            slam = [
-                group.create_task(DedicatedThread(stage, inbox, outbox, stage_stats, stop).run())
-                for stage, inbox, outbox, stage_stats in zip(graph.slam, inboxes, outboxes, stats[2:])
-            ]
+            slam = group.create_task(DedicatedThread(graph.slam, uploaded, results, stats[2], stop).run())
             group.create_task(graph.sink.drain(results))
-            upstream += slam[:-1] + [group.create_task(service(stop)) for service in graph.services]
-            end = await slam[-1]
+            upstream += [group.create_task(service(stop)) for service in graph.services]
+            end = await slam
             for task in upstream:
                 task.cancel()
     except* StageFailure as failures:
@@ -182,7 +175,8 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     wall = time.perf_counter() - start
     report = _finish_report(graph, "pipelined", wall, stop.is_set(), stats)
     report.queues = {name: {"max_depth": q.max_depth, "dropped": q.dropped} for name, q in graph.queues.items()}
-    report.queues.update({f"{s.name}_start": {"max_depth": 1, "dropped": s.dropped} for s in graph.slam if s.dropped})
+    if graph.slam.dropped:
+        report.queues[f"{graph.slam.name}_start"] = {"max_depth": 1, "dropped": graph.slam.dropped}
     return report
 
 
@@ -192,7 +186,7 @@ async def _collect(source: AsyncIterable[Any]) -> list[Any]:
 
 def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
     """The plain loop: read, decode, copy, track and map one frame after the other."""
-    steps = [("decode", graph.source.decode), ("upload", graph.upload)] + [(s.name, s.run) for s in graph.slam]
+    steps = [("decode", graph.source.decode), ("upload", graph.upload), (graph.slam.name, graph.slam.run)]
     stats = {name: StageStats(name) for name, _ in steps}
     items = asyncio.run(_collect(graph.source))
     start = time.perf_counter()

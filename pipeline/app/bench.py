@@ -34,7 +34,6 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "3d-anisotropic": ("gaussians.isotropic=false",),
     "2d-isotropic": ("gaussians.kind=2d",),
     "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),
-    "overlapped": ("slam.schedule=overlapped",),
     "sequential": ("slam.schedule=sequential",),
     "views2": ("mapping.views_per_step=2",),
     "views3": ("mapping.views_per_step=3",),
@@ -42,9 +41,6 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "adam": ("tracking.method=adam",),  # SplaTAM's tracker, whatever the preset's default
     "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
     "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
-    "adam-overlapped": ("tracking.method=adam", "slam.schedule=overlapped"),
-    "align-overlapped": ("tracking.method=align", "slam.schedule=overlapped"),
-    "overlapped-views2": ("slam.schedule=overlapped", "mapping.views_per_step=2"),
     "process": ("slam.schedule=process",),  # mapping in its own process, refining between frames
     "process-views2": ("slam.schedule=process", "mapping.views_per_step=2"),
     "process-lead1": ("slam.schedule=process", "slam.max_lead=1"),

@@ -35,7 +35,7 @@ from pipeline.slam.view import SteppedSlam
 from pipeline.source import Source
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultConsumer, ResultSink
-from pipeline.stages.slam import FrameObserver, overlapped_stages, sequential_stages
+from pipeline.stages.slam import FrameObserver, slam_stage
 from pipeline.stages.upload import make_uploader
 from pipeline.stages.worker import ThreadedStage
 from pipeline.ui.display import LiveFeed
@@ -177,14 +177,11 @@ def _frame_rows(folder: RunFolder, saver: PeriodicSave) -> ResultConsumer:
     return write
 
 
-def slam_stages(session: Session) -> list[ThreadedStage]:
-    """The SLAM stages of the configured schedule."""
-    slam, source, schedule = session.slam, session.source, session.config.slam
+def slam_stage_of(session: Session) -> ThreadedStage:
+    """SLAM per frame, with the session's observers (and, live on CUDA, a warm-up)."""
+    slam, source = session.slam, session.source
     warm_up = source.live and switched_on(session.config.live.warm_up, session.device.type == "cuda")
-    if schedule.schedule == "overlapped":
-        assert isinstance(slam, SplaTAM)
-        return overlapped_stages(slam, source.last_index, session.observers, schedule.max_lead, source.live, warm_up)
-    return sequential_stages(slam, source.last_index, session.observers, source.live, warm_up)
+    return slam_stage(slam, source.last_index, session.observers, source.live, warm_up)
 
 
 def graph_of(session: Session) -> Graph:
@@ -193,7 +190,7 @@ def graph_of(session: Session) -> Graph:
     return Graph(
         source=session.source,
         upload=make_uploader(session.device, slots=config.run.queue_size + 2),
-        slam=slam_stages(session),
+        slam=slam_stage_of(session),
         sink=session.sink,
         queue_size=config.run.queue_size,
         services=list(session.services),

@@ -185,15 +185,15 @@ class RenderConfig:
     far: float = 100.0  # far plane, metres
 
 
-Schedule = Literal["sequential", "overlapped", "process"]
+Schedule = Literal["sequential", "process"]
 
 
 @dataclass(frozen=True)
 class SlamConfig:
     """How tracking and mapping share the frames."""
 
-    schedule: Schedule = "sequential"  # overlapped: two threads; process: mapping in a process of its own
-    max_lead: int = 2  # overlapped and process, offline: frames tracking may run ahead of mapping (live: no bound)
+    schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own
+    max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (live: no bound)
     backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
 
 

@@ -1,9 +1,6 @@
-"""SplaTAM: a tracking side and a mapping side, run one frame at a time or as two stages.
-
-`step` runs a frame through both sides in order (the sequential schedule); the overlapped
-schedule runs `frontend.track` and `backend.map` in two threads (pipeline/stages/). Either way
-`checkpoint()` is consistent: the map of the last frame mapping has passed, with the poses and
-tracking state up to that frame.
+"""SplaTAM: a tracking side and a mapping side, run one frame at a time (the sequential
+schedule): `step` runs a frame through both sides in order, and `checkpoint()` is the map of
+the last frame mapping has passed, with the poses and tracking state up to that frame.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from pipeline.errors import StageFailure
@@ -28,16 +28,12 @@ from pipeline.stages.stage import StageStats, frame_index
 class ThreadedStage:
     """A stage for the runtime that runs in a thread of its own: its function, and how it takes
     its inbox. `pass_over`: a live stage's treatment of the items it does not process because a
-    newer one is waiting (None: every item is processed; it may return None: dropped).
-    `finish_on_stop`: after a stop, process what is already in the inbox (mapping finishes the
-    frames tracked)."""
+    newer one is waiting (None: every item is processed; it may return None: dropped)."""
 
     name: str
     run: Callable[[Any], Any]
     spans: GpuSpans
     pass_over: Callable[[Any], Any] | None = None
-    finish_on_stop: bool = False
-    interrupt: Callable[[], None] = field(default=lambda: None)  # unblocks `run` when the graph stops
     dropped: int = 0  # live: frames not started because a newer one was waiting, or used to warm up
 
     def drop(self, item: Any) -> None:
@@ -49,8 +45,7 @@ class DedicatedThread:
     """Applies `stage.run` to every item of `inbox` in order, in a thread of its own, and puts
     the results in `outbox`. At most two items (one with `pass_over`: the newest is chosen when
     it starts) are handed over or finished but not yet passed on, a bound on memory. Once `stop`
-    is set the thread finishes the item in hand and takes no other, unless `finish_on_stop`
-    (then it goes on to the inbox's end). With `pass_over`, of the items waiting only the newest
+    is set the thread finishes the item in hand and takes no other. With `pass_over`, of the items waiting only the newest
     goes to `run`; the older ones go, in order, to `pass_over`."""
 
     def __init__(
@@ -71,8 +66,7 @@ class DedicatedThread:
 
     async def run(self) -> EndOfStream:
         """-> the end marker passed on (END, or the StreamFailed of a stage before this one); a
-        failure of the stage's function itself is raised. `stage.interrupt` is called when it
-        ends, to unblock a function that waits for another stage."""
+        failure of the stage's function itself is raised."""
         loop = asyncio.get_running_loop()
         finished: asyncio.Queue[Any] = asyncio.Queue()
         slots = asyncio.Semaphore(1 if self.stage.pass_over else 2)
@@ -98,7 +92,6 @@ class DedicatedThread:
             feeder.cancel()
             watcher.cancel()
             self._halted.set()
-            self.stage.interrupt()
             self._handoff.put(END)  # wakes the worker if it waits for an item
             await asyncio.to_thread(thread.join)
         await self.outbox.put(results)
@@ -128,7 +121,7 @@ class DedicatedThread:
         post(batch if isinstance(batch, EndOfStream) else END)
 
     def _stopping(self) -> bool:
-        return self.stop.is_set() and not self.stage.finish_on_stop
+        return self.stop.is_set()
 
     async def _feed(self, slots: asyncio.Semaphore) -> None:
         """Hand over one batch per free slot: the next item, and with `pass_over` every item
@@ -149,5 +142,4 @@ class DedicatedThread:
     async def _halt_on_stop(self) -> None:
         """The moment a stop is asked for, the worker takes no new item (not one more frame)."""
         await self.stop.wait()
-        if not self.stage.finish_on_stop:
-            self._halted.set()
+        self._halted.set()

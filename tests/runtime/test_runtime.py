@@ -75,8 +75,8 @@ def jittery(item: Item) -> Item:
 
 
 def graph(n: int, slam: FakeSlam, decode=jittery, queue_size: int = 3) -> Graph:
-    stages = [ThreadedStage("slam", slam, GpuSpans(torch.device("cpu")))]
-    return Graph(ListSource(n, decode), jittery, stages, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
+    stage = ThreadedStage("slam", slam, GpuSpans(torch.device("cpu")))
+    return Graph(ListSource(n, decode), jittery, stage, CollectSink(), queue_size=queue_size, decode_workers=2)  # type: ignore[arg-type]
 
 
 def run(g: Graph, stop: asyncio.Event | None = None, timeout: float = 30.0):
@@ -248,7 +248,7 @@ def test_a_live_graph_starts_only_the_newest_frame_and_counts_the_rest() -> None
     source = LiveSource(60, 0.01)
     stage = ThreadedStage("slam", slam, GpuSpans(torch.device("cpu")))
     stage.pass_over = stage.drop
-    g = Graph(source, jittery, [stage], CollectSink(), queue_size=4)  # type: ignore[arg-type]
+    g = Graph(source, jittery, stage, CollectSink(), queue_size=4)  # type: ignore[arg-type]
     report = run(g)
     seen = [index for index, _, _ in starts]
     assert seen == sorted(seen) and len(seen) < 40

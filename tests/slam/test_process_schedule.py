@@ -28,7 +28,7 @@ from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.source import DatasetSource
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import sequential_stages
+from pipeline.stages.slam import slam_stage
 from pipeline.stages.upload import HostUploader, host_frame_tensors
 
 CPU = torch.device("cpu")
@@ -101,8 +101,8 @@ def test_process_schedule_tracks_every_frame_against_versions_never_written_mean
     slam.frontend.tracker = checked
     try:
         sink = ResultSink(FrameLog())
-        stages = sequential_stages(slam, len(dataset) - 1, [])
-        graph = Graph(DatasetSource(dataset), HostUploader(), stages, sink, queue_size=8)
+        stage = slam_stage(slam, len(dataset) - 1, [])
+        graph = Graph(DatasetSource(dataset), HostUploader(), stage, sink, queue_size=8)
         asyncio.run(run_graph(graph, asyncio.Event()))
         slam.finish(0)
         assert [r.index for r in sink.log.results] == list(range(len(dataset)))

@@ -1,5 +1,4 @@
-"""The two SLAM schedules: sequential (one thread, today's results) and overlapped (tracking and
-mapping as concurrent stages)."""
+"""The sequential SLAM stage through the runtime: today's results, the live warm-up, a stop."""
 
 from __future__ import annotations
 
@@ -8,7 +7,6 @@ import hashlib
 import json
 import os
 import signal
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +29,7 @@ from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.source import DatasetSource
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
-from pipeline.stages.slam import overlapped_stages, sequential_stages
+from pipeline.stages.slam import slam_stage
 from pipeline.stages.upload import HostUploader, UploadedFrame, host_frame_tensors
 
 CPU = torch.device("cpu")
@@ -53,11 +51,10 @@ def _slam(overrides: list[str]) -> SplaTAM:
     return SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
 
 
-def _run_graph(slam: SplaTAM, source: DatasetSource, overlapped: bool, live: bool = False) -> ResultSink:
+def _run_graph(slam: SplaTAM, source: DatasetSource) -> ResultSink:
     sink = ResultSink(FrameLog())
-    last = source.last_index
-    stages = overlapped_stages(slam, last, [], 1, live) if overlapped else sequential_stages(slam, last, [])
-    asyncio.run(run_graph(Graph(source, HostUploader(), stages, sink, queue_size=8), asyncio.Event()))
+    stage = slam_stage(slam, source.last_index, [])
+    asyncio.run(run_graph(Graph(source, HostUploader(), stage, sink, queue_size=8), asyncio.Event()))
     return sink
 
 
@@ -74,7 +71,7 @@ def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(r
     for frame in dataset.frames():
         plain.step(host_frame_tensors(frame))
     staged = _slam(["tracking.method=adam"])
-    sink = _run_graph(staged, DatasetSource(dataset), overlapped=False)
+    sink = _run_graph(staged, DatasetSource(dataset))
     assert [r.index for r in sink.results] == list(range(len(dataset)))
     assert torch.equal(torch.stack(staged.poses), torch.stack(plain.poses))
     assert staged.gaussians is not None and plain.gaussians is not None
@@ -92,53 +89,15 @@ def test_sequential_through_the_runtime_is_the_plain_loop_and_the_recorded_run(r
     np.testing.assert_allclose([s.depth_l1_cm for s in scores], recorded["render"]["depth_l1_cm"], atol=RECORDED_L1_CM)
 
 
-@pytest.mark.slow
-def test_overlapped_tracks_against_published_versions_that_never_change(replica_seq: Path) -> None:
-    """One pose per frame; every map version tracking reads is unchanged across its tracking step
-    (checksums before and after); the versions tracking reads never decrease."""
-    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
-    slam = _slam(FAST)
-    track = slam.frontend.tracker
-    seen: list[tuple[int, str, str]] = []
-
-    def checked(gaussians: Gaussians, frame, c2w_init):  # type: ignore[no-untyped-def]
-        latest = slam.backend.latest
-        assert latest is not None and latest.gaussians is gaussians
-        before = _checksum(gaussians)
-        result = track(gaussians, frame, c2w_init)
-        seen.append((latest.number, before, _checksum(gaussians)))
-        return result
-
-    slam.frontend.tracker = checked
-    sink = _run_graph(slam, DatasetSource(dataset), overlapped=True)
-    assert [r.index for r in sink.results] == list(range(len(dataset)))
-    assert len(slam.poses) == len(dataset) and len(seen) == len(dataset) - 1
-    assert all(before == after for _, before, after in seen)
-    versions = [number for number, _, _ in seen]
-    assert versions == sorted(versions) and versions[0] >= 1
-    published = [r.map_version for r in sink.results]
-    assert published == sorted(published) and published[-1] == len(dataset)
-
-
-@pytest.mark.parametrize("overlapped", [False, True], ids=["sequential", "overlapped"])
-def test_a_live_warm_up_drops_the_first_frame_and_leaves_no_trace(replica_seq: Path, overlapped: bool) -> None:
+def test_a_live_warm_up_drops_the_first_frame_and_leaves_no_trace(replica_seq: Path) -> None:
     """The first frame a warming live stage takes runs through SLAM and is dropped (counted);
     the frames after it give, bit for bit, what a SLAM that never saw it gives."""
     frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:4]
     warmed, cold = _slam(FAST), _slam(FAST)
-    if overlapped:
-        tracking, mapping = overlapped_stages(warmed, None, [], 1, live=True, warm_up=True)
+    first = slam_stage(warmed, None, [], live=True, warm_up=True)
 
-        def step(frame: DeviceFrame) -> FrameResult | None:
-            tracked = tracking.run(UploadedFrame(frame, None))
-            return None if tracked is None else mapping.run(tracked)
-
-        first = tracking
-    else:
-        (first,) = sequential_stages(warmed, None, [], live=True, warm_up=True)
-
-        def step(frame: DeviceFrame) -> FrameResult | None:
-            return first.run(UploadedFrame(frame, None))
+    def step(frame: DeviceFrame) -> FrameResult | None:
+        return first.run(UploadedFrame(frame, None))
 
     assert step(frames[0]) is None and first.dropped == 1
     assert warmed.frames_done == 0 and warmed.gaussians is None and warmed.frontend.frames_done == 0
@@ -168,56 +127,9 @@ def test_warm_up_refuses_a_slam_that_has_started(replica_seq: Path) -> None:
         slam.warm_up(frame)
 
 
-class PacedSource(DatasetSource):
-    """A live source that sends the next frame once tracking has taken the last one, so that no
-    frame is dropped before tracking (a live graph keeps only the newest frame in every queue)."""
-
-    live = True
-
-    def __init__(self, dataset, slam: SplaTAM) -> None:  # type: ignore[no-untyped-def]
-        super().__init__(dataset)
-        self.slam = slam
-
-    async def __aiter__(self):  # type: ignore[no-untyped-def]
-        for ref in self.dataset.refs:
-            yield ref
-            while self.slam.frontend.frames_done <= ref.index:
-                await asyncio.sleep(0.01)
-
-
-@pytest.mark.slow
-def test_overlapped_live_maps_the_newest_frame_and_passes_the_rest_on(replica_seq: Path) -> None:
-    """A live session never waits for mapping: while mapping is held on frame 1 until tracking
-    has tracked every frame, the frames tracked meanwhile are passed on unmapped (with their
-    poses), the newest is mapped next, and every frame keeps its result."""
-    dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
-    slam = _slam(FAST)
-    all_tracked = threading.Event()
-    track, map_frame = slam.frontend.track, slam.backend.map
-
-    def tracking(frame, latest):  # type: ignore[no-untyped-def]
-        tracked = track(frame, latest)
-        if frame.index == len(dataset) - 1:
-            all_tracked.set()
-        return tracked
-
-    def mapping(tracked, is_last=False):  # type: ignore[no-untyped-def]
-        if tracked.frame.index == 1:
-            assert all_tracked.wait(timeout=120)
-        return map_frame(tracked, is_last)
-
-    slam.frontend.track, slam.backend.map = tracking, mapping  # type: ignore[method-assign]
-    source = PacedSource(dataset, slam)
-    sink = _run_graph(slam, source, overlapped=True, live=True)
-    results = sink.results
-    assert [r.index for r in results] == list(range(len(dataset))) and len(slam.poses) == len(dataset)
-    assert [r.mapped for r in results] == [True, True, False, False, False, True]
-    assert sink.log.unmapped_frames == 3 and results[-1].map_version == 3
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("stop_after", [1, 2])
-def test_stopping_an_overlapped_run_leaves_a_complete_resumable_folder(
+def test_stopping_a_run_leaves_a_complete_resumable_folder(
     replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stop_after: int
 ) -> None:
     consume = ResultSink.consume
@@ -228,7 +140,7 @@ def test_stopping_an_overlapped_run_leaves_a_complete_resumable_folder(
             os.kill(os.getpid(), signal.SIGINT)  # as Ctrl-C: the runtime's handler stops the graph
 
     monkeypatch.setattr(ResultSink, "consume", consume_then_stop)
-    config = load_config("tiny", overrides=FAST + ["slam.schedule=overlapped", f"dataset.path={replica_seq}"])
+    config = load_config("tiny", overrides=FAST + [f"dataset.path={replica_seq}"])
     config = with_value(with_value(config, "run.output", str(tmp_path)), "run.name", "r")
     result = run_slam(config, CPU, progress=False)
     assert result.metrics is not None and result.metrics.interrupted
