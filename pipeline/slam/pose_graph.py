@@ -12,7 +12,7 @@ GTSAM is imported where the graph is optimised, so the rest of this module needs
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 
@@ -41,8 +41,7 @@ class Edge:
 
 @dataclass(frozen=True)
 class PoseGraph:
-    """Keyframe poses (oldest first) and the edges between them; grown with `with_keyframe`
-    and `with_loop`, never changed in place."""
+    """Keyframe poses (oldest first) and the edges between them (`chained`), never changed in place."""
 
     c2w: torch.Tensor  # [K, 4, 4] float64 camera-to-world on the host
     edges: tuple[Edge, ...] = ()
@@ -74,21 +73,6 @@ class GraphSolution:
         return bool(self.kept)
 
 
-def empty_graph() -> PoseGraph:
-    return PoseGraph(torch.zeros(0, 4, 4, dtype=F64))
-
-
-def with_keyframe(graph: PoseGraph, c2w: torch.Tensor, information: torch.Tensor) -> PoseGraph:
-    """A new node at camera-to-world `c2w` [4, 4] and, after the first, an odometry edge from the
-    previous node measuring their relative pose as estimated now, of `information` [6, 6]."""
-    pose = c2w.detach().to("cpu", F64)
-    edges = graph.edges
-    if len(graph):
-        relative = invert_pose(graph.c2w[-1]) @ pose
-        edges += (Edge(len(graph) - 1, len(graph), relative, information.to("cpu", F64)),)
-    return PoseGraph(torch.cat([graph.c2w, pose[None]]), edges)
-
-
 def chained(c2w: torch.Tensor, odometry_information: torch.Tensor, loops: tuple[Edge, ...]) -> PoseGraph:
     """Nodes at `c2w` [K, 4, 4] float64, an odometry edge from each node to the next at the
     relative pose the nodes imply (of `odometry_information[k]` [6, 6] for the edge into node k),
@@ -97,10 +81,6 @@ def chained(c2w: torch.Tensor, odometry_information: torch.Tensor, loops: tuple[
         Edge(k - 1, k, invert_pose(c2w[k - 1]) @ c2w[k], odometry_information[k]) for k in range(1, len(c2w))
     )
     return PoseGraph(c2w, (*odometry, *loops))
-
-
-def with_loop(graph: PoseGraph, edge: Edge) -> PoseGraph:
-    return replace(graph, edges=(*graph.edges, replace(edge, loop=True)))
 
 
 def adjoint(pose: torch.Tensor) -> torch.Tensor:

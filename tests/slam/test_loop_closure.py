@@ -23,7 +23,7 @@ from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loop_candidates import descriptor
 from pipeline.slam.loop_closer import LoopCloser
 from pipeline.slam.loop_closure import LoopDetection, LoopTally, Verdict, Verification, detect_loops, verdicts, verify
-from pipeline.slam.pose_graph import edge_residual, empty_graph, fixed_information, optimise, with_keyframe, with_loop
+from pipeline.slam.pose_graph import chained, edge_residual, fixed_information, optimise
 from pipeline.sources.datasets.loader import open_dataset
 from pipeline.sources.datasets.synthetic import synthetic_for
 from pipeline.sources.datasets.synthetic_writer import write_synthetic
@@ -111,11 +111,9 @@ def test_the_loop_is_detected_verified_accepted_and_the_graph_takes_the_drift_ba
             assert detection.current - edge.first >= CONFIG.min_keyframes_back
 
     information = fixed_information(CONFIG.odometry_sigma_m, CONFIG.odometry_sigma_deg)
-    graph = empty_graph()
-    for keyframe in loop_sequence.keyframes:
-        graph = with_keyframe(graph, keyframe.c2w, information)
-    for edge in (edge for detection in detections for edge in detection.edges()):
-        graph = with_loop(graph, edge)
+    poses = torch.stack([k.c2w.double() for k in loop_sequence.keyframes])
+    loops = tuple(edge for detection in detections for edge in detection.edges())  # loop=True, each
+    graph = chained(poses, information.repeat(len(poses), 1, 1), loops)
     solution = optimise(graph, CONFIG)
     tally = tally.optimised(solution)
     assert solution.changed and tally.accepted == len(solution.kept) and tally.dropped_by_graph == 0
@@ -142,9 +140,8 @@ def test_in_the_trap_room_appearance_alone_proposes_a_loop_but_none_is_accepted(
     assert sum(d.detected for d in detections) >= 3
     assert sum(d.verified for d in detections) == sum(d.accepted for d in detections) == 0
     assert all(check.verdict is Verdict.FAILED_VERIFICATION for d in detections for check in d.checks)
-    graph = empty_graph()
-    for keyframe in keyframes:
-        graph = with_keyframe(graph, keyframe.c2w, fixed_information(0.01, 0.5))
+    poses = torch.stack([k.c2w.double() for k in keyframes])
+    graph = chained(poses, fixed_information(0.01, 0.5).repeat(len(poses), 1, 1), ())
     assert optimise(graph, CONFIG).c2w is graph.c2w  # nothing accepted, nothing moves
 
 

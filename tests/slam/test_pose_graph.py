@@ -4,6 +4,7 @@ false one is dropped, and the information of an alignment is carried to the edge
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -12,14 +13,13 @@ from pipeline.config import LoopConfig
 from pipeline.geometry import invert_pose, se3_exp
 from pipeline.slam.pose_graph import (
     Edge,
+    PoseGraph,
     adjoint,
     alignment_information,
+    chained,
     edge_residual,
-    empty_graph,
     fixed_information,
     optimise,
-    with_keyframe,
-    with_loop,
 )
 
 F64 = torch.float64
@@ -53,11 +53,12 @@ def drifted(truth: torch.Tensor, yaw_per_step: float, seed: int = 0) -> torch.Te
     return torch.stack(estimate)
 
 
-def chain(poses: torch.Tensor) -> object:
-    graph = empty_graph()
-    for pose in poses:
-        graph = with_keyframe(graph, pose, INFORMATION)
-    return graph
+def chain(poses: torch.Tensor) -> PoseGraph:
+    return chained(poses.double(), INFORMATION.repeat(len(poses), 1, 1), ())
+
+
+def with_loop(graph: PoseGraph, edge: Edge) -> PoseGraph:
+    return replace(graph, edges=(*graph.edges, replace(edge, loop=True)))
 
 
 def ate(estimate: torch.Tensor, truth: torch.Tensor) -> float:
