@@ -145,9 +145,7 @@ class LoopRecord:
     unconfirmed: int = 0
     dropped_by_graph: int = 0
     searches: int = 0  # keyframes searched
-    search_ms: float | None = (
-        None  # mean per keyframe searched: the odometry edge's alignment, candidates, verification
-    )
+    search_ms: float | None = None  # mean per keyframe searched (odometry alignment, candidates, verification)
     closed: list[ClosedLoopRow] = field(default_factory=list)
 
     @staticmethod

@@ -84,11 +84,14 @@ class MappingBackend:
         """A host copy of loop closure's state, its nodes at the keyframes' current poses."""
         assert self.loops is not None
         state = self.loops.state
-        node_c2w = self.loops.graph_poses(self.keyframes)
-        return LoopState(
-            state.creator.cpu(), node_c2w, list(state.node_positions), state.odometry_information,
-            list(state.loops), state.tally, list(state.closed),
-        )  # fmt: skip
+        return replace(
+            state,
+            creator=state.creator.cpu(),
+            node_c2w=self.loops.graph_poses(self.keyframes),
+            node_positions=list(state.node_positions),
+            loops=list(state.loops),
+            closed=list(state.closed),
+        )
 
     def restore(self, saved: BackendState, mark: TrackerMark) -> None:
         """Continue from `saved`, the tracking side standing at `mark`; publishes the map."""
@@ -177,7 +180,7 @@ class MappingBackend:
         assert self.gaussians is not None and self.loops is not None
         creator = self.loops.state.creator
         self.gaussians = move_map(self.gaussians, creator, correction.old_c2w, correction.node_c2w)
-        node_of = {p: n for n, p in enumerate(self.loops.state.node_positions)}
+        node_of = self.loops.state.node_of()
         self.keyframes = [
             replace(k, c2w=correction.node_c2w[node_of[k.pose.position]].to(k.c2w)) for k in self.keyframes
         ]

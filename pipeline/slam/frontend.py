@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import torch
@@ -118,16 +118,8 @@ class TrackingFrontend:
         ORB-SLAM's frames follow their reference keyframe. An anchor whose pose is the very
         tensor it was leaves the pose as it is (no rounding)."""
         now = {k.position: k.c2w for k in keyframes}
-        corrections: dict[int, torch.Tensor] = {}  # id(anchor) -> its correction
-        poses = []
-        for position, pose in enumerate(self.poses[:frames]):
-            if position in now:
-                poses.append(now[position].to(self.device))
-            elif (correction := self._correction(self.anchors[position], now, corrections)) is None:
-                poses.append(pose)
-            else:
-                poses.append(correction @ pose)
-        return poses
+        corrections: dict[int, torch.Tensor] = {}  # id(anchor) -> its correction, made once
+        return [self._followed(position, now, corrections) for position in range(len(self.poses))[:frames]]
 
     def _correction(
         self, anchor: KeyframePose | None, now: dict[int, torch.Tensor], known: dict[int, torch.Tensor]
@@ -140,11 +132,14 @@ class TrackingFrontend:
             known[id(anchor)] = now[anchor.position].to(then) @ invert_pose(then)
         return known[id(anchor)]
 
-    def _followed(self, position: int, now: dict[int, torch.Tensor]) -> torch.Tensor:
-        """One frame's pose as the keyframes' poses `now` (position -> [4, 4]) place it (`poses_with`)."""
+    def _followed(
+        self, position: int, now: dict[int, torch.Tensor], known: dict[int, torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """One frame's pose as the keyframes' poses `now` (position -> [4, 4]) place it
+        (`poses_with`; `known`: the anchors' corrections made so far)."""
         if position in now:
             return now[position].to(self.device)
-        correction = self._correction(self.anchors[position], now, {})
+        correction = self._correction(self.anchors[position], now, {} if known is None else known)
         pose = self.poses[position]
         return pose if correction is None else correction @ pose
 
@@ -213,8 +208,7 @@ class TrackingFrontend:
                 attempt = self._attempt(gaussians, frame, self._initial_pose(frame, latest.keyframes))
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
-            anchor = max(latest.keyframes, key=lambda k: k.position) if latest and latest.keyframes else None
-            self._record(frame, attempt, anchor, first=latest is None)
+            self._record(frame, attempt, self._anchor(latest), first=latest is None)
         ready = None
         if frame.depth.is_cuda:
             ready = torch.cuda.Event()
@@ -225,6 +219,16 @@ class TrackingFrontend:
             result.received_at = frame.received_at
             result.age_at_start_s = started - frame.received_at
         return TrackedFrame(frame, attempt.c2w, result, self.mark(), ready)
+
+    @staticmethod
+    def _anchor(latest: MapVersion | None) -> KeyframePose | None:
+        """The keyframe a frame tracked against `latest` follows: its newest (the store is oldest
+        first). A pose that is a row of the version's stacked poses (the process schedule's
+        reader) is copied, so that each frame keeps 16 numbers alive, not the whole stack."""
+        if latest is None or not latest.keyframes:
+            return None
+        newest = latest.keyframes[-1]
+        return newest if newest.c2w._base is None else replace(newest, c2w=newest.c2w.clone())
 
     def _initial_pose(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last

@@ -63,7 +63,7 @@ class LoopCloser:
     def graph_poses(self, keyframes: list[Keyframe]) -> torch.Tensor:
         """[K, 4, 4] float64 of the nodes: the stored keyframes' current poses, the last known of the others."""
         c2w = self.state.node_c2w.clone()
-        node_of = {p: n for n, p in enumerate(self.state.node_positions)}
+        node_of = self.state.node_of()
         for keyframe in keyframes:
             if keyframe.pose.position in node_of:
                 c2w[node_of[keyframe.pose.position]] = keyframe.c2w.detach().to("cpu", F64)
@@ -104,7 +104,7 @@ class LoopCloser:
         pixels = sample_valid_pixels(current.depth, self.samples, generator)
         detection = detect_loops(keyframes, descriptors, intrinsics, pixels, self.config, self.tracking)
         state.tally = state.tally.counted(detection, time.perf_counter() - started)
-        node_of = {p: n for n, p in enumerate(state.node_positions)}
+        node_of = state.node_of()
         found = [
             replace(edge, first=node_of[keyframes[edge.first].pose.position], second=node) for edge in detection.edges()
         ]

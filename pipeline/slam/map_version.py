@@ -22,7 +22,7 @@ class MapVersion:
     number: int  # increases by one with every mapped frame
     gaussians: Gaussians  # detached; never modified after publishing
     ready: torch.cuda.Event | None  # recorded on mapping's stream when the version was complete
-    keyframes: tuple[KeyframePose, ...] = ()  # the keyframe store's poses as of this version (relocalisation)
+    keyframes: tuple[KeyframePose, ...] = ()  # the keyframe store's poses as of this version, oldest first
 
     def for_current_stream(self) -> Gaussians:
         """The Gaussians, safe to use on the calling thread's CUDA stream: it waits (on the GPU,

@@ -57,6 +57,10 @@ class LoopState:
     tally: LoopTally = field(default_factory=LoopTally)
     closed: list[ClosedLoop] = field(default_factory=list)
 
+    def node_of(self) -> dict[int, int]:
+        """Frame position among the run's poses -> its keyframe's node."""
+        return {position: node for node, position in enumerate(self.node_positions)}
+
     @staticmethod
     def empty() -> LoopState:
         f64 = torch.float64

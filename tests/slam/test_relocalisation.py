@@ -214,3 +214,18 @@ def test_frames_follow_the_keyframe_they_were_tracked_after() -> None:
     torch.testing.assert_close(guess, correction @ shifted(0.03))
     assert front.state().tracked_poses is not None
     torch.testing.assert_close(front.state().tracked_poses, torch.stack([torch.eye(4), *truth[1:]]))
+
+
+def test_a_frame_keeps_its_anchors_pose_not_the_versions_stack_of_poses() -> None:
+    """The process schedule's reader gives keyframe poses as rows of one stacked tensor per
+    version: a frame's anchor copies its row (a long live session would otherwise keep every
+    version's stack alive); a pose of its own (the sequential schedule's) is kept as it is."""
+    stack = torch.stack([shifted(0.1), shifted(0.2)])
+    rows = tuple(Keyframe(i, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), stack[i], i) for i in range(2))
+    anchor = TrackingFrontend._anchor(version(rows))
+    assert anchor is not None and anchor.position == 1 and torch.equal(anchor.c2w, stack[1])
+    assert anchor.c2w._base is None and anchor.c2w.untyped_storage().data_ptr() != stack.untyped_storage().data_ptr()
+    own = (Keyframe(0, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), shifted(0.3), 0),)
+    kept = TrackingFrontend._anchor(version(own))
+    assert kept is not None and kept.c2w is own[0].c2w
+    assert TrackingFrontend._anchor(None) is None and TrackingFrontend._anchor(version()) is None

@@ -184,10 +184,10 @@ class MappingLoop:
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
         result = FrameResult(handed.index, handed.timestamp, slot.c2w, {}, 0, 0, 0.0, 1.0)
         tracked = TrackedFrame(frame, slot.c2w, result, TrackerMark(handed.position + 1, 0, None), None)
-        closed_before = self.backend.loops_closed()
+        closed_before = len(self.backend.loops_closed())
         done = self.backend.map(tracked, is_last=handed.is_last)
         self._publish()
-        seconds, closed = done.seconds, self.backend.loops_closed()[len(closed_before) :]
+        seconds, closed = done.seconds, self.backend.loops_closed()[closed_before:]
         mapped = m.FrameMapped(handed.index, True, done.added, seconds["densify"], seconds["mapping"], tuple(closed))
         self.setup.outbox.put(mapped)
 
