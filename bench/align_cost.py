@@ -29,13 +29,13 @@ import torch
 
 from pipeline.app.report import versions
 from pipeline.config import SyntheticConfig, load_config
-from pipeline.files.atomic import atomic_write_text
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import se3_exp
+from pipeline.io.files.atomic import atomic_write_text
+from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
 from pipeline.render import Camera, Gaussians, RenderOutput
-from pipeline.slam.align_tracker import AlignTracker
-from pipeline.slam.rgbd_alignment import LmState, lm_iteration
-from pipeline.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
+from pipeline.slam.tracking.align_tracker import AlignTracker
+from pipeline.slam.tracking.rgbd_alignment import LmState, lm_iteration
 
 WARMUP = 5
 MOTION = np.r_[np.radians([1.2, -1.0, 1.2]), [0.02, -0.015, 0.015]]  # ~2 degrees, ~3 cm

@@ -30,11 +30,11 @@ from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
 from pipeline.devices import resolve_device
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.io.sources.datasets.synthetic import default_intrinsics
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, copied
 from pipeline.slam.kernels import EAGER, make_kernels
 from pipeline.slam.keyframes import Keyframe
-from pipeline.sources.datasets.synthetic import default_intrinsics
 
 WARMUP = 5  # iterations run before timing: compilation, allocator and cache warm-up
 

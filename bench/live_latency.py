@@ -24,10 +24,10 @@ from typing import Any
 
 from pipeline.app.report import versions
 from pipeline.config import DatasetConfig, SyntheticConfig
-from pipeline.files.atomic import atomic_write_bytes, atomic_write_text
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic_writer import cached_synthetic
-from pipeline.sources.live.fake_record3d import FakePhone
+from pipeline.io.files.atomic import atomic_write_bytes, atomic_write_text
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic_writer import cached_synthetic
+from pipeline.io.sources.live.fake_record3d import FakePhone
 
 
 def free_port() -> int:

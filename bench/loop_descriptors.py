@@ -26,11 +26,11 @@ import numpy as np
 import torch
 
 from pipeline.config import DatasetConfig, SyntheticConfig
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic import synthetic_for
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.keyframes import overlap_fractions, sample_valid_pixels
-from pipeline.slam.loop_candidates import blurred_thumbnail, descriptor, standardised
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic import synthetic_for
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.slam.loops.candidates import blurred_thumbnail, descriptor, standardised
 
 MIN_BACK, RADIUS_M, MAX_ANGLE_DEG, MIN_OVERLAP = 10, 0.5, 60.0, 0.3
 VOCABULARY = 64  # ORB visual words, clustered from the sequence's own keyframes (an upper bound for ORB)

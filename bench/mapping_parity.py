@@ -19,7 +19,7 @@ from pipeline.app.report import versions
 from pipeline.config import GaussianConfig, RenderConfig
 from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, make_renderer, make_views_renderer
-from pipeline.slam.optimizers import SelectiveAdamReference, make_map_optimizer
+from pipeline.slam.mapping.optimizers import SelectiveAdamReference, make_map_optimizer
 
 
 def random_scene(n: int, device: torch.device) -> Gaussians:

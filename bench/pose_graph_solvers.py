@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from slam.test_pose_graph import CONFIG, ate, chain, circle, drifted, loop_edge, with_loop  # noqa: E402
 
 from pipeline.geometry import invert_pose, skew  # noqa: E402
-from pipeline.slam.pose_graph import PoseGraph, optimise  # noqa: E402
+from pipeline.slam.loops.pose_graph import PoseGraph, optimise  # noqa: E402
 
 F64 = torch.float64
 DENSE_LIMIT = 200  # keyframes: past this PyPose's dense 6K x 6E Jacobian takes minutes

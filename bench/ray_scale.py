@@ -34,7 +34,7 @@ import ray
 import torch
 
 from pipeline.app.report import versions
-from pipeline.files.atomic import atomic_write_text
+from pipeline.io.files.atomic import atomic_write_text
 
 PHONE_SIZE = ("--width", "256", "--height", "192")  # the iPhone LiDAR's depth resolution
 POLL_S = 0.5

@@ -22,12 +22,12 @@ import numpy as np
 from pipeline.app.report import versions
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.frame import Frame
-from pipeline.sources.datasets.base import Dataset
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
-from pipeline.sources.live.fake_record3d import FakePhone
-from pipeline.sources.live.record3d import Record3DPacket, Record3DSession, Record3DSource, StreamEnded
-from pipeline.sources.live.record3d_format import DEPTH_VALID_M
+from pipeline.io.sources.datasets.base import Dataset
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.io.sources.live.fake_record3d import FakePhone
+from pipeline.io.sources.live.record3d import Record3DPacket, Record3DSession, Record3DSource, StreamEnded
+from pipeline.io.sources.live.record3d_format import DEPTH_VALID_M
 
 
 def _nearest_sent(dataset: Dataset, color: np.ndarray, guess: int) -> Frame:

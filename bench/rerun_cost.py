@@ -30,7 +30,7 @@ from viewer_overhead import run_once  # bench/ is the script's folder
 
 from pipeline.app.report import versions
 from pipeline.config import Config, load_config, with_value
-from pipeline.files.atomic import atomic_write_text
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.ui.rerun_feed import RerunFeed
 from pipeline.ui.viewer_feed import ViewerFeed
 

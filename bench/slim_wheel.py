@@ -16,7 +16,7 @@ import zipfile
 from pathlib import Path
 from typing import IO
 
-from pipeline.files.atomic import atomic_write
+from pipeline.io.files.atomic import atomic_write
 
 
 def slim(wheel: Path, out_dir: Path, drop: list[str]) -> Path:

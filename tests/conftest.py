@@ -14,15 +14,15 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from pipeline.config import DatasetConfig, GaussianConfig, SyntheticConfig, load_config
-from pipeline.outputs.intrinsics import CameraIntrinsics, write_intrinsics
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.outputs.intrinsics import CameraIntrinsics, write_intrinsics
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import concatenate, seed_gaussians
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.state import BackendState, Checkpoint, FrontendState
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # one of two workers on two cores: one thread each,
     os.environ["OMP_NUM_THREADS"] = "1"  # and for the commands a test starts

@@ -20,8 +20,8 @@ from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config
 from pipeline.devices import describe, placement, resolve_device
 from pipeline.errors import UserError
-from pipeline.files.atomic import atomic_write_text
-from pipeline.outputs.run_metrics import RunMetrics
+from pipeline.io.files.atomic import atomic_write_text
+from pipeline.io.outputs.run_metrics import RunMetrics
 
 log = logging.getLogger("gsplatam")
 

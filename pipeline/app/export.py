@@ -18,17 +18,17 @@ import torch
 
 from pipeline.app.setup import rendering_on
 from pipeline.errors import DataError, OutputError, UserError
-from pipeline.files.folders import atomic_folder, make_folder
 from pipeline.geometry import invert_pose
-from pipeline.outputs.exports.compressed_ply import write_compressed_ply
-from pipeline.outputs.exports.full_ply import write_full_ply
-from pipeline.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
-from pipeline.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
-from pipeline.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
-from pipeline.outputs.exports.pointcloud import write_pointcloud
-from pipeline.outputs.exports.splat import write_splat
-from pipeline.outputs.exports.spz import write_spz
-from pipeline.outputs.run_folder import RunFolder, run_owning
+from pipeline.io.files.folders import atomic_folder, make_folder
+from pipeline.io.outputs.exports.compressed_ply import write_compressed_ply
+from pipeline.io.outputs.exports.full_ply import write_full_ply
+from pipeline.io.outputs.exports.mesh import RGBDView, fuse_tsdf, write_mesh_ply
+from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
+from pipeline.io.outputs.exports.nerfstudio import Frames, Size, views_of, write_nerfstudio
+from pipeline.io.outputs.exports.pointcloud import write_pointcloud
+from pipeline.io.outputs.exports.splat import write_splat
+from pipeline.io.outputs.exports.spz import write_spz
+from pipeline.io.outputs.run_folder import RunFolder, run_owning
 from pipeline.render import Camera, make_renderer
 from pipeline.slam.gaussian_map import copied
 from pipeline.slam.state import Checkpoint

@@ -28,7 +28,7 @@ from pipeline.app.serve import serve_live
 from pipeline.config import Config
 from pipeline.devices import placement, resolve_device
 from pipeline.errors import UserError
-from pipeline.sources.cameras import live_camera, source_label
+from pipeline.io.sources.cameras import live_camera, source_label
 from pipeline.ui.status_http import serve_status
 
 log = logging.getLogger("gsplatam")

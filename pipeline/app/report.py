@@ -17,9 +17,9 @@ import numpy as np
 import torch
 
 from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command
-from pipeline.outputs.exports import FORMATS
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_metrics import LoopRecord, RunMetrics, TimingRecord
+from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_metrics import LoopRecord, RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.stages.frame_log import FrameLog
 

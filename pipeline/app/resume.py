@@ -10,8 +10,8 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.slam.state import Checkpoint
 
 # what a resume must match of the run that wrote the checkpoint, and how a mismatch reads

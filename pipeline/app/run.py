@@ -20,19 +20,19 @@ from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.errors import OutputError, StageFailure, UserError
 from pipeline.frame import DeviceFrame
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
+from pipeline.io.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StopRecord
+from pipeline.io.sources.datasets.base import Dataset
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.source import DatasetSource
+from pipeline.io.sources.datasets.synthetic import synthetic_for
+from pipeline.io.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.metrics import view_quality
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
-from pipeline.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StopRecord
 from pipeline.render import Gaussians
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
-from pipeline.sources.datasets.base import Dataset
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.source import DatasetSource
-from pipeline.sources.datasets.synthetic import synthetic_for
-from pipeline.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.stages.upload import make_uploader
 
 log = logging.getLogger("gsplatam")

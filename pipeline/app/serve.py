@@ -24,15 +24,15 @@ from pipeline.app.session import Session, execute_session, open_session
 from pipeline.app.setup import LIVE_LAYOUT, Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_folders import new_run_folder
-from pipeline.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_folders import new_run_folder
+from pipeline.io.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
+from pipeline.io.sources.cameras import open_source
+from pipeline.io.sources.live.recording import RecordingSource
 from pipeline.runtime import Graph, RuntimeReport
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.source import Source
-from pipeline.sources.cameras import open_source
-from pipeline.sources.live.recording import RecordingSource
 from pipeline.stages.frame_log import ate_so_far_cm, referenced_poses
 from pipeline.ui.progress import ProgressBar
 from pipeline.ui.status_http import serve_status

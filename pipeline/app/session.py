@@ -18,17 +18,17 @@ from pipeline.app.report import timing_summary, versions
 from pipeline.app.setup import Setup
 from pipeline.config import Config, switched_on
 from pipeline.devices import describe
-from pipeline.outputs.frame_row import FrameRow
-from pipeline.outputs.intrinsics import IntrinsicsRecorder
-from pipeline.outputs.periodic_save import FrameStamp, PeriodicSave
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_metrics import AteRecord, FrameAges, LoopRecord, RunMetrics
+from pipeline.io.outputs.frame_row import FrameRow
+from pipeline.io.outputs.intrinsics import IntrinsicsRecorder
+from pipeline.io.outputs.periodic_save import FrameStamp, PeriodicSave
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_metrics import AteRecord, FrameAges, LoopRecord, RunMetrics
 from pipeline.render import make_renderer
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.kernel_time import KernelSampler
 from pipeline.slam.process.schedule import ProcessSplaTAM
-from pipeline.slam.results import FrameResult
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint, LoopState
 from pipeline.slam.view import SteppedSlam

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.files.trajectory import read_tum_trajectory
-from pipeline.outputs.ply import read_ply
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.ply import read_ply
+from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.ui.display import follow_pose
 from pipeline.ui.viewer_feed import map_view
 

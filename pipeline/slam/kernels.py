@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.slam.losses import ssim
-from pipeline.slam.rgbd_alignment import AlignIteration, lm_iteration
+from pipeline.slam.tracking.rgbd_alignment import AlignIteration, lm_iteration
 
 
 def tracking_loss(

@@ -7,8 +7,8 @@ import torch
 from pipeline.config import Config, switched_on
 from pipeline.render import Renderer, make_views_renderer
 from pipeline.slam.kernels import make_kernels
-from pipeline.slam.mapping import MapSettings
-from pipeline.slam.tracking import Tracker, TrackSettings, make_tracker
+from pipeline.slam.mapping.window import MapSettings
+from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
 
 
 def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tracker:

@@ -13,11 +13,11 @@ import torch
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
-from pipeline.slam.backend import MappingBackend
-from pipeline.slam.frontend import TrackingFrontend
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
+from pipeline.slam.mapping.backend import MappingBackend
 from pipeline.slam.sides import mapping_settings, tracker_for
 from pipeline.slam.state import Checkpoint
+from pipeline.slam.tracking.frontend import TrackingFrontend
 
 WARM_UP_FRAMES = 2  # the first frame runs mapping only, the second tracking too
 

@@ -10,8 +10,8 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.loop_closure import ClosedLoop, LoopTally
-from pipeline.slam.pose_graph import Edge
+from pipeline.slam.loops.detection import ClosedLoop, LoopTally
+from pipeline.slam.loops.pose_graph import Edge
 
 
 @dataclass

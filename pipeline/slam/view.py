@@ -11,9 +11,9 @@ from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import Renderer
 from pipeline.render.types import Gaussians
-from pipeline.slam.frontend import TrackingFrontend
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.state import Checkpoint
+from pipeline.slam.tracking.frontend import TrackingFrontend
 
 
 class PublishedSlam(Protocol):

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from pipeline.metrics import absolute_trajectory_error
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 
 log = logging.getLogger("gsplatam")
 

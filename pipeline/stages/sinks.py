@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.queues import EndOfStream, StageQueue
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from torch.profiler import record_function
 
 from pipeline.frame import DeviceFrame
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.view import SlamView, SteppedSlam
 from pipeline.stages.gpu_spans import GpuSpans
 from pipeline.stages.upload import UploadedFrame

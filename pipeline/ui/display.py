@@ -12,7 +12,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pipeline.frame import DeviceFrame
-    from pipeline.slam.results import FrameResult
+    from pipeline.slam.handoff import FrameResult
     from pipeline.slam.view import SlamView
 
 

@@ -7,7 +7,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.stages.frame_log import FrameLog, ate_so_far_cm
 
 ATE_EVERY_S = 1.0  # the ATE so far is recomputed at most this often (over all frames so far each time)

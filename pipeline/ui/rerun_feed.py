@@ -25,7 +25,7 @@ import torch
 from pipeline.config import ViewerConfig
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.view import SlamView
 from pipeline.ui.rerun_recording import RerunRecording
 from pipeline.ui.thumbnail import Thumbnail, as_u8, thumbnail

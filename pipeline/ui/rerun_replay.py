@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.files.trajectory import read_tum_trajectory
-from pipeline.outputs.intrinsics import CameraIntrinsics
-from pipeline.outputs.ply import read_ply
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.intrinsics import CameraIntrinsics
+from pipeline.io.outputs.ply import read_ply
+from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.ui.rerun_recording import RerunRecording
 from pipeline.ui.thumbnail import as_u8
 

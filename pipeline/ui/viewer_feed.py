@@ -22,10 +22,10 @@ import torch
 from pipeline.config import Config, RenderConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, quat_to_rotmat
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.render import Camera, Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.view import SlamView
 from pipeline.ui.display import FrameView, LiveFeed, MapDisplay, MapView, colorize_depth
 from pipeline.ui.thumbnail import as_u8, thumbnail

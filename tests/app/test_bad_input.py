@@ -17,7 +17,7 @@ import torch
 from conftest import ROOT
 
 from pipeline.app.cli import main
-from pipeline.outputs.ply import write_ply
+from pipeline.io.outputs.ply import write_ply
 from pipeline.render.types import Gaussians
 
 

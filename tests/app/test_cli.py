@@ -15,9 +15,9 @@ from conftest import ROOT
 
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
-from pipeline.files.trajectory import read_tum_trajectory
-from pipeline.outputs.exports import FORMATS as EXPORT_FORMATS
-from pipeline.sources.datasets.loader import open_dataset
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
+from pipeline.io.sources.datasets.loader import open_dataset
 
 
 @pytest.mark.parametrize("command", [[], ["run"], ["synth"], ["bench"], ["serve"], ["view"], ["export"], ["config"]])
@@ -133,7 +133,7 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     assert (camera["width"], camera["height"]) == (64, 48)
     for fmt, default in EXPORT_FORMATS.items():
         if fmt == "mesh" and importlib.util.find_spec("open3d") is None:
-            continue  # the mesh extra is absent (tests/outputs/test_exports.py says so)
+            continue  # the mesh extra is absent (tests/io/outputs/test_exports.py says so)
         assert main(["export", str(folder), "--to", fmt]) == 0
         assert (folder / default).exists(), fmt
 

@@ -61,7 +61,7 @@ def test_a_missing_extra_is_one_line_naming_its_pip_command(
 def _a_map(folder: Path) -> Path:
     import torch
 
-    from pipeline.outputs.ply import write_ply
+    from pipeline.io.outputs.ply import write_ply
     from pipeline.render import Gaussians
 
     one = Gaussians(

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from pipeline.app.cli import main
-from pipeline.files.trajectory import read_tum_trajectory
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.run_folder import RunFolder
 
 gtsam = pytest.importorskip("gtsam")
 LOOPS = ["--preset", "tiny", "--set", "loops.enabled=true", "--set", "keyframes.every=2", "--quiet"]

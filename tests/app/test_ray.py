@@ -20,8 +20,8 @@ from live_helpers import free_port, read_status, wait_for
 from pipeline.app.bench import cells_of, report_of, run_cell
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.live.fake_record3d import FakePhone
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.live.fake_record3d import FakePhone
 
 ray = pytest.importorskip("ray")
 

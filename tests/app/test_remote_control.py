@@ -8,7 +8,7 @@ import threading
 import time
 
 from pipeline.app.remote_control import RemoteControl
-from pipeline.sources.cameras import source_label
+from pipeline.io.sources.cameras import source_label
 
 
 async def _graph(control: RemoteControl, ended: threading.Event) -> None:

@@ -14,9 +14,9 @@ from conftest import write_gt_run
 
 from pipeline.app import report
 from pipeline.extras import CHECKOUT, install_command, pip_command
-from pipeline.outputs.exports import FORMATS
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_metrics import ClosedLoopRow, LoopRecord, RunMetrics
+from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_metrics import ClosedLoopRow, LoopRecord, RunMetrics
 
 
 @pytest.fixture(scope="module")

@@ -24,14 +24,14 @@ from live_helpers import wait_for
 from pipeline.app.cli import main
 from pipeline.app.report import gsplatam_command
 from pipeline.config import load_config, to_toml, with_value
-from pipeline.files.trajectory import read_tum_trajectory
-from pipeline.outputs.checkpoint import write_checkpoint
-from pipeline.outputs.frame_row import FrameRow
-from pipeline.outputs.run_description import RunDescription
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.checkpoint import write_checkpoint
+from pipeline.io.outputs.frame_row import FrameRow
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
 
 QUICK = [
     "--preset",
@@ -116,7 +116,7 @@ def test_a_signal_after_slam_still_writes_every_output_and_exits_0(
     replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys, when: str
 ) -> None:
     import pipeline.app.run as run_module
-    from pipeline.outputs.periodic_save import PeriodicSave
+    from pipeline.io.outputs.periodic_save import PeriodicSave
 
     def signal_first(target: Any, name: str, sig: int) -> None:
         original = getattr(target, name)

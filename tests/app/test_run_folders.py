@@ -13,9 +13,9 @@ from conftest import ROOT
 
 from pipeline.app.cli import main
 from pipeline.errors import UserError
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.outputs.run_folders import LATEST, new_run_folder
-from pipeline.outputs.run_lock import RunFolderBusy, RunLock
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_folders import LATEST, new_run_folder
+from pipeline.io.outputs.run_lock import RunFolderBusy, RunLock
 
 
 def test_runs_without_a_name_get_fresh_folders_and_latest_points_at_the_newest(tmp_path: Path) -> None:
@@ -104,7 +104,7 @@ def test_the_cli_refuses_to_run_into_an_earlier_run(replica_seq: Path, tmp_path:
 def _hold_lock(folder: Path) -> subprocess.Popen[str]:
     """Another process holding `folder`'s lock until its stdin closes."""
     script = (
-        "import sys; from pathlib import Path; from pipeline.outputs.run_lock import RunLock\n"
+        "import sys; from pathlib import Path; from pipeline.io.outputs.run_lock import RunLock\n"
         f"with RunLock(Path({str(folder)!r})):\n    print('locked', flush=True); sys.stdin.read()\n"
     )
     holder = subprocess.Popen(
@@ -281,7 +281,7 @@ def test_overwrite_follows_no_link_out_of_the_run_folder(tmp_path: Path) -> None
 
 
 def test_frames_csv_is_never_appended_through_a_link(tmp_path: Path) -> None:
-    from pipeline.outputs.frame_row import FrameRow
+    from pipeline.io.outputs.frame_row import FrameRow
 
     other = tmp_path / "other.txt"
     other.write_text("mine\n")

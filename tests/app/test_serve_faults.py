@@ -18,9 +18,9 @@ from pipeline.app import serve as serve_module
 from pipeline.app.setup import LIVE_LAYOUT, finish_config
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import OutputError
-from pipeline.outputs.run_folder import RunFolder
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.source import DatasetSource
+from pipeline.io.outputs.run_folder import RunFolder
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.source import DatasetSource
 
 CPU = torch.device("cpu")
 
@@ -85,7 +85,7 @@ def test_a_recording_on_a_full_disk_loses_neither_the_sessions_results_nor_what_
 ) -> None:
     import json
 
-    from pipeline.sources.live import recording
+    from pipeline.io.sources.live import recording
 
     real, written = recording.write_color, []
 

@@ -10,7 +10,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, quat_to_rotmat
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.render.reference import SMOOTH, render_reference
-from pipeline.slam.tracking import TrackSettings, track
+from pipeline.slam.tracking.trackers import TrackSettings, track
 
 K = torch.tensor([[100.0, 0.0, 40.5], [0.0, 100.0, 30.5], [0.0, 0.0, 1.0]])  # centre pixel (40, 30)
 

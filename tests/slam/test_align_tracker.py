@@ -12,16 +12,16 @@ import torch
 from pipeline.config import DatasetConfig, SyntheticConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, se3_exp
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import Camera, Gaussians, RenderOutput, make_renderer
-from pipeline.slam.align_tracker import AlignTracker
 from pipeline.slam.gaussian_map import seed_gaussians
-from pipeline.slam.rgbd_alignment import lm_iteration, lm_start
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking import TrackSettings, make_tracker
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.slam.tracking.align_tracker import AlignTracker
+from pipeline.slam.tracking.rgbd_alignment import lm_iteration, lm_start
+from pipeline.slam.tracking.trackers import TrackSettings, make_tracker
 from pipeline.stages.upload import host_frame_tensors
 
 CPU = torch.device("cpu")

@@ -9,8 +9,8 @@ import torch
 
 from pipeline.errors import UserError
 from pipeline.geometry import se3_exp, skew
-from pipeline.slam.pyramid import check_pyramid_fits, halve_depth, halve_intrinsics, rgbd_pyramid
-from pipeline.slam.rgbd_alignment import (
+from pipeline.slam.tracking.pyramid import check_pyramid_fits, halve_depth, halve_intrinsics, rgbd_pyramid
+from pipeline.slam.tracking.rgbd_alignment import (
     damped_step,
     photometric_jacobian,
     point_to_plane_jacobian,

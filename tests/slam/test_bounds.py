@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults
+from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.render import make_renderer
 from pipeline.slam.keyframes import most_redundant
 from pipeline.slam.splatam import SplaTAM
-from pipeline.sources.datasets.loader import open_dataset
 from pipeline.stages.upload import host_frame_tensors
 
 CPU = torch.device("cpu")

@@ -18,15 +18,23 @@ import torch
 
 from pipeline.config import DatasetConfig, LoopConfig, SyntheticConfig, TrackingConfig
 from pipeline.geometry import invert_pose, se3_exp
-from pipeline.slam.align_tracker import SolveReport
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic import synthetic_for
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
-from pipeline.slam.loop_candidates import descriptor
-from pipeline.slam.loop_closer import LoopCloser
-from pipeline.slam.loop_closure import LoopDetection, LoopTally, Verdict, Verification, detect_loops, verdicts, verify
-from pipeline.slam.pose_graph import chained, edge_residual, fixed_information, optimise
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic import synthetic_for
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.slam.loops.candidates import descriptor
+from pipeline.slam.loops.closer import LoopCloser
+from pipeline.slam.loops.detection import (
+    LoopDetection,
+    LoopTally,
+    Verdict,
+    Verification,
+    detect_loops,
+    verdicts,
+    verify,
+)
+from pipeline.slam.loops.pose_graph import chained, edge_residual, fixed_information, optimise
+from pipeline.slam.tracking.align_tracker import SolveReport
 
 F64 = torch.float64
 NOISY = dict(layout="tum", depth_noise=0.0015, holes=0.02, time_jitter=0.004)

@@ -6,7 +6,7 @@ import torch
 
 from pipeline.geometry import pose_matrix, quat_to_rotmat
 from pipeline.render.types import Gaussians
-from pipeline.slam.map_correction import move_map, quat_multiply
+from pipeline.slam.loops.map_correction import move_map, quat_multiply
 
 
 def random_pose(gen: torch.Generator) -> torch.Tensor:

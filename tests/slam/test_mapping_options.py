@@ -10,8 +10,8 @@ from pipeline.config import GaussianConfig, LossConfig, MappingConfig, RenderCon
 from pipeline.geometry import invert_pose
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.mapping import MapSettings, map_window
-from pipeline.slam.optimizers import SelectiveAdamReference
+from pipeline.slam.mapping.optimizers import SelectiveAdamReference
+from pipeline.slam.mapping.window import MapSettings, map_window
 
 CPU = torch.device("cpu")
 K = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]])

@@ -11,7 +11,7 @@ import torch
 
 from pipeline.config import LoopConfig
 from pipeline.geometry import invert_pose, se3_exp
-from pipeline.slam.pose_graph import (
+from pipeline.slam.loops.pose_graph import (
     Edge,
     PoseGraph,
     adjoint,

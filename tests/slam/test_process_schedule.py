@@ -17,15 +17,15 @@ import torch
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
+from pipeline.io.outputs.checkpoint import read_checkpoint
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.source import DatasetSource
 from pipeline.metrics import view_quality
-from pipeline.outputs.checkpoint import read_checkpoint
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
 from pipeline.slam.keyframes import KeyframePose
 from pipeline.slam.process.schedule import ProcessSplaTAM
 from pipeline.slam.process.shared_map import SLOTS, MapControl, MapReader, MapWriter
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.source import DatasetSource
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import slam_stage

@@ -11,14 +11,14 @@ import torch
 from pipeline.config import DatasetConfig, SyntheticConfig, TrackingConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.render import Gaussians, make_renderer
-from pipeline.slam.frontend import TrackingFrontend, TrackingState
 from pipeline.slam.keyframes import Keyframe, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking import TrackResult
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.slam.tracking.frontend import TrackingFrontend, TrackingState
+from pipeline.slam.tracking.trackers import TrackResult
 from pipeline.stages.upload import host_frame_tensors
 
 CPU = torch.device("cpu")

@@ -17,16 +17,16 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.app.run import run_slam
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults, with_value
-from pipeline.files.trajectory import read_tum_trajectory
 from pipeline.frame import DeviceFrame
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.checkpoint import read_checkpoint
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.io.sources.datasets.source import DatasetSource
 from pipeline.metrics import view_quality
-from pipeline.outputs.checkpoint import read_checkpoint
 from pipeline.render import Gaussians, make_renderer
 from pipeline.runtime import Graph, run_graph
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.splatam import SplaTAM
-from pipeline.sources.datasets.loader import open_dataset
-from pipeline.sources.datasets.source import DatasetSource
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
 from pipeline.stages.slam import slam_stage

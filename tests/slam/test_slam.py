@@ -8,7 +8,6 @@ import torch
 from conftest import SMALL_SYNTH
 
 from pipeline.config import DatasetConfig, DensifyConfig, load_config, with_dataset_defaults
-from pipeline.files.trajectory import read_tum_trajectory, write_tum_trajectory
 from pipeline.geometry import (
     constant_velocity,
     invert_pose,
@@ -17,16 +16,17 @@ from pipeline.geometry import (
     quat_to_rotmat,
     rotmat_to_quat,
 )
+from pipeline.io.files.trajectory import read_tum_trajectory, write_tum_trajectory
+from pipeline.io.outputs.checkpoint import read_checkpoint, write_checkpoint
+from pipeline.io.outputs.ply import read_ply, write_ply
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.metrics import absolute_trajectory_error
-from pipeline.outputs.checkpoint import read_checkpoint, write_checkpoint
-from pipeline.outputs.ply import read_ply, write_ply
-from pipeline.outputs.run_description import RunDescription
 from pipeline.render import Camera, Gaussians, make_renderer
-from pipeline.slam.densify import densify_mask
 from pipeline.slam.keyframes import Keyframe, overlap_fractions, select_window
 from pipeline.slam.losses import psnr
+from pipeline.slam.mapping.densify import densify_mask
 from pipeline.slam.splatam import SplaTAM
-from pipeline.sources.datasets.loader import open_dataset
 from pipeline.stages.upload import host_frame_tensors
 
 CPU = torch.device("cpu")
@@ -303,7 +303,7 @@ def test_lost_tracking_is_reported_and_the_frame_not_mapped(replica_seq, method:
 
 def test_synthetic_scenes_are_deterministic_per_seed() -> None:
     from pipeline.config import SyntheticConfig
-    from pipeline.sources.datasets.synthetic import sequence
+    from pipeline.io.sources.datasets.synthetic import sequence
 
     def first_frame(seed: int):
         _, frames = sequence(SyntheticConfig(frames=2, width=32, height=24, seed=seed))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.sinks import ResultSink
 from pipeline.ui.progress import ProgressBar

@@ -15,13 +15,13 @@ import torch
 
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
-from pipeline.files.trajectory import read_tum_trajectory, write_tum_trajectory
 from pipeline.frame import DeviceFrame
-from pipeline.outputs.intrinsics import CameraIntrinsics, read_intrinsics, write_intrinsics
-from pipeline.outputs.ply import read_ply, write_ply
+from pipeline.io.files.trajectory import read_tum_trajectory, write_tum_trajectory
+from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics, write_intrinsics
+from pipeline.io.outputs.ply import read_ply, write_ply
+from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.render import Gaussians
-from pipeline.slam.results import FrameResult
-from pipeline.sources.datasets.loader import open_dataset
+from pipeline.slam.handoff import FrameResult
 from pipeline.ui import rerun_feed, rerun_recording
 from pipeline.ui.rerun_feed import RerunFeed
 from pipeline.ui.rerun_recording import RerunRecording

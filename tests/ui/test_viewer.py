@@ -23,9 +23,9 @@ from live_helpers import free_port, wait_for
 from pipeline.config import RenderConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import quat_to_rotmat
-from pipeline.outputs.run_folder import RunFolder
+from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.render import Gaussians
-from pipeline.slam.results import FrameResult
+from pipeline.slam.handoff import FrameResult
 from pipeline.ui.viewer_feed import ViewerFeed, map_view
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -328,7 +328,7 @@ def test_view_rejects_a_missing_map(tmp_path: Path, capsys) -> None:
 
 
 def test_a_common_3dgs_ply_with_extra_properties_is_viewable(tmp_path: Path) -> None:
-    from pipeline.outputs.ply import read_ply, write_ply
+    from pipeline.io.outputs.ply import read_ply, write_ply
 
     n = 5
     g = Gaussians(torch.rand(n, 3), torch.rand(n, 4), torch.rand(n, 3) - 3, torch.rand(n), torch.rand(n, 3))
@@ -368,7 +368,7 @@ def test_the_web_viewer_takes_a_frame_a_save_and_the_summary_without_a_browser()
 def test_sigint_stops_a_command_started_with_sigint_ignored(tmp_path: Path) -> None:
     """A shell's background job starts with SIGINT ignored; the command still stops on it, as
     the README promises (here `view`, which waits for Ctrl-C)."""
-    from pipeline.outputs.ply import write_ply
+    from pipeline.io.outputs.ply import write_ply
 
     one = Gaussians(
         torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.zeros(1, 1), torch.zeros(1), torch.zeros(1, 3)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import FORMATS
 
 HELP = "a run folder to nerfstudio, .splat, a full PLY, a mesh or a point cloud"
 

@@ -20,8 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.sources.live.fake_nerfcapture import publish_dataset
-    from pipeline.sources.live.fake_scene import fake_phone_dataset
+    from pipeline.io.sources.live.fake_nerfcapture import publish_dataset
+    from pipeline.io.sources.live.fake_scene import fake_phone_dataset
 
     dataset = fake_phone_dataset(args.dataset, Path(args.output), not args.quiet)
     log.info(

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from pipeline.errors import UserError
 
 if TYPE_CHECKING:
-    from pipeline.sources.datasets.base import Dataset
+    from pipeline.io.sources.datasets.base import Dataset
 
 HELP = "a fake Record3D phone streaming a dataset (for tests and demos)"
 log = logging.getLogger("gsplatam")
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.sources.live.fake_scene import fake_phone_dataset
+    from pipeline.io.sources.live.fake_scene import fake_phone_dataset
 
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port} is not a port (0 to 65535; 0: any free one)")
@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
 
 async def _stream(dataset: Dataset, host: str, port: int, fps: float, loop: bool) -> None:
     """Serve the phone's endpoints until cancelled (Ctrl-C)."""
-    from pipeline.sources.live.fake_record3d import FakePhone
+    from pipeline.io.sources.live.fake_record3d import FakePhone
 
     phone = FakePhone(dataset, fps, loop)
     try:

@@ -6,7 +6,7 @@ import argparse
 import logging
 from typing import TYPE_CHECKING
 
-from pipeline.sources.cameras import CAMERAS
+from pipeline.io.sources.cameras import CAMERAS
 
 if TYPE_CHECKING:
     from pathlib import Path

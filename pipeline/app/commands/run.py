@@ -15,7 +15,7 @@ from pipeline.app.commands.options import (
     requested_config,
 )
 from pipeline.errors import UserError
-from pipeline.sources.cameras import camera_of
+from pipeline.io.sources.cameras import camera_of
 
 HELP = "SLAM on a dataset (default: a generated synthetic room)"
 log = logging.getLogger("gsplatam")
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
         return _live(args)
     from pipeline.app.report import files_and_next_steps, format_table, gsplatam_command
     from pipeline.app.run import run_slam
-    from pipeline.outputs.run_folder import RunFolder
+    from pipeline.io.outputs.run_folder import RunFolder
 
     if args.resume and args.overwrite:
         raise UserError("--resume continues a run, --overwrite replaces one: give one of them")

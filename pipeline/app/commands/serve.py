@@ -12,7 +12,7 @@ from pipeline.app.commands.options import (
     requested_config,
 )
 from pipeline.errors import UserError
-from pipeline.sources.cameras import CAMERAS
+from pipeline.io.sources.cameras import CAMERAS
 
 HELP = "live daemon: reconstruct from a phone's stream until Ctrl-C"
 

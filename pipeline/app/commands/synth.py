@@ -32,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pipeline.config import SyntheticConfig
     from pipeline.devices import resolve_device
-    from pipeline.sources.datasets.synthetic import synthetic_for
-    from pipeline.sources.datasets.synthetic_writer import write_synthetic_folder
+    from pipeline.io.sources.datasets.synthetic import synthetic_for
+    from pipeline.io.sources.datasets.synthetic_writer import write_synthetic_folder
 
     for name in ("width", "height", "frames"):
         if getattr(args, name) is not None and getattr(args, name) <= 0:

@@ -24,7 +24,7 @@ import torch.multiprocessing as mp
 from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
-from pipeline.slam.loop_closure import closed_loop_line
+from pipeline.slam.loops.detection import closed_loop_line
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping

@@ -21,14 +21,13 @@ import torch
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import make_renderer
-from pipeline.slam.backend import MappingBackend
-from pipeline.slam.frontend import TrackedFrame, TrackerMark
+from pipeline.slam.handoff import FrameResult, TrackedFrame, TrackerMark
 from pipeline.slam.kernel_time import KernelTimer
-from pipeline.slam.mapping import MapSettings
+from pipeline.slam.mapping.backend import MappingBackend
+from pipeline.slam.mapping.window import MapSettings
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
 from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWriter
-from pipeline.slam.results import FrameResult
 from pipeline.slam.sides import mapping_settings
 
 BEAT_S = 0.2  # an idle mapping process shows a sign of life this often

@@ -15,7 +15,7 @@ import torch
 
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.loop_closure import ClosedLoop
+from pipeline.slam.loops.detection import ClosedLoop
 from pipeline.slam.process.frame_ring import FrameSlot
 from pipeline.slam.process.shared_map import MapGeneration
 from pipeline.slam.state import BackendState, LoopState

@@ -22,15 +22,15 @@ import torch
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
-from pipeline.slam.backend import scene_radius_of
-from pipeline.slam.frontend import TrackingFrontend
 from pipeline.slam.gaussian_map import copied
+from pipeline.slam.handoff import FrameResult
 from pipeline.slam.keyframes import KeyframePose
 from pipeline.slam.map_version import MapVersion
+from pipeline.slam.mapping.backend import scene_radius_of
 from pipeline.slam.process.client import MappingProcess
-from pipeline.slam.results import FrameResult
 from pipeline.slam.sides import tracker_for
 from pipeline.slam.state import BackendState, Checkpoint
+from pipeline.slam.tracking.frontend import TrackingFrontend
 
 log = logging.getLogger("gsplatam")
 

@@ -1,0 +1,140 @@
+"""A nerfstudio dataset of a run: `transforms.json`, images, depth and a seed point cloud.
+
+Its images are the keyframes (`frames="keyframes"`) or every frame tracked well (`"all"`,
+decoded again from the run's dataset), at SLAM's working size or the dataset's own
+(`size="native"`: its images and depth as stored, with its own intrinsics, those of the
+working size scaled).
+
+nerfstudio's `nerfstudio-data` parser (splatfacto, depth-nerfacto) reads it as it is:
+- camera-to-world `transform_matrix` per frame in nerfstudio's OpenGL camera axes (x right,
+  y up, z backwards): the OpenCV pose with its y and z axes negated;
+- one pinhole camera `fl_x fl_y cx cy w h` (pixel centres at +0.5, as here);
+- colour as PNG, depth as 16-bit PNG in millimetres: nerfstudio's default
+  `depth_unit_scale_factor` of 1e-3 turns them into metres (0 = no depth);
+- `ply_file_path`: the Gaussian centres with colours, splatfacto's initial points;
+- `train_filenames`, `val_filenames`, `test_filenames` (the parser takes all three or none):
+  every EVAL_EVERY-th image held out for evaluation, at least one once there are two images
+  (nerfstudio's default 90/10 split of 3 keyframes leaves evaluation empty); a single image
+  is in every split.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.io.files.atomic import atomic_write_bytes, atomic_write_text
+from pipeline.io.files.images import encode_color, encode_depth_png
+from pipeline.io.outputs.exports.pointcloud import write_pointcloud
+from pipeline.io.outputs.intrinsics import CameraIntrinsics
+from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.render.types import Gaussians
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.state import Checkpoint
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # right-multiplied: flips the camera's y and z axes
+DEPTH_UNITS_PER_METRE = 1000.0  # millimetres; nerfstudio's depth_unit_scale_factor is the inverse, 1e-3
+POINTS_FILE = "sparse_pc.ply"
+EVAL_EVERY = 8  # every 8th image held out for evaluation (nerfstudio's own eval_interval)
+Frames = Literal["keyframes", "all"]
+Size = Literal["working", "native"]
+WRITTEN = ("images/frame_*.png", "depth/frame_*.png", "transforms.json", POINTS_FILE)  # in its folder
+
+
+def opengl_c2w(c2w_opencv: np.ndarray) -> np.ndarray:
+    """[4, 4] camera-to-world with OpenCV camera axes -> the same camera with OpenGL axes."""
+    return c2w_opencv @ OPENCV_TO_OPENGL
+
+
+def transforms(frames: list[tuple[str, str, np.ndarray]], camera: CameraIntrinsics) -> dict[str, Any]:
+    """transforms.json for (image path, depth path, OpenCV camera-to-world [4, 4]) per frame."""
+    return {
+        "camera_model": "OPENCV",
+        "fl_x": camera.fx,
+        "fl_y": camera.fy,
+        "cx": camera.cx,
+        "cy": camera.cy,
+        "w": camera.width,
+        "h": camera.height,
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "ply_file_path": POINTS_FILE,
+        "frames": [
+            {"file_path": image, "depth_file_path": depth, "transform_matrix": opengl_c2w(c2w).tolist()}
+            for image, depth, c2w in frames
+        ],
+        **split([image for image, _, _ in frames]),
+    }
+
+
+def split(images: list[str]) -> dict[str, list[str]]:
+    """train/val/test file lists: every EVAL_EVERY-th image from the middle of the first
+    EVAL_EVERY held out (at least one of two or more); one image alone is in every split."""
+    held = set(images[min(EVAL_EVERY // 2, len(images) // 2) :: EVAL_EVERY]) if len(images) > 1 else set()
+    train = [image for image in images if image not in held] or images
+    evaluated = [image for image in images if image in held] or images
+    return {"train_filenames": train, "val_filenames": evaluated, "test_filenames": evaluated}
+
+
+@dataclass
+class View:
+    """One image of the export."""
+
+    index: int  # the frame's position in the run
+    color: np.ndarray  # [H, W, 3] uint8 RGB
+    depth: np.ndarray  # [H, W] float32 metres, 0 = no depth
+    c2w: np.ndarray  # [4, 4] float64 camera-to-world, OpenCV camera axes
+
+
+def views_of(
+    checkpoint: Checkpoint, config: Config, camera: CameraIntrinsics, frames: Frames, size: Size
+) -> tuple[Iterator[View], CameraIntrinsics]:
+    """The images `frames` and `size` ask for, and their camera. Keyframes at the working size
+    come from the checkpoint; the rest are decoded again from the run's dataset."""
+    if frames == "keyframes" and size == "working":
+        return (_keyframe_view(k) for k in checkpoint.keyframes), camera
+    chosen = [k.index for k in checkpoint.keyframes] if frames == "keyframes" else _tracked(checkpoint)
+    dataset = open_dataset(config.dataset if size == "working" else replace(config.dataset, width=0, height=0))
+    refs = [dataset.refs[i] for i in chosen]
+    first = dataset.decode(refs[0])
+    height, width = first.depth.shape
+    poses = checkpoint.poses.double().numpy()
+    decoded = itertools.chain([first], (dataset.decode(ref) for ref in refs[1:]))  # the first, decoded once
+    views = (View(f.index, f.color, f.depth.astype(np.float32), poses[f.index]) for f in decoded)
+    return views, CameraIntrinsics.of_matrix(first.intrinsics, width, height)
+
+
+def _keyframe_view(keyframe: Keyframe) -> View:
+    color, depth = keyframe.color_u8.cpu().numpy(), keyframe.depth.float().cpu().numpy()
+    return View(keyframe.index, color, depth, keyframe.c2w.double().cpu().numpy())
+
+
+def _tracked(checkpoint: Checkpoint) -> list[int]:
+    """Every frame of the run but those tracking judged lost (their poses are not trusted)."""
+    lost = set(checkpoint.tracking.lost_frames)
+    return [i for i in range(checkpoint.frames_done) if i not in lost]
+
+
+def write_nerfstudio(folder: Path, views: Iterable[View], camera: CameraIntrinsics, gaussians: Gaussians) -> int:
+    """Write the dataset into `folder` (created): transforms.json, images/, depth/ and the
+    points. -> the number of images."""
+    for sub in ("images", "depth"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    frames = []
+    for view in views:
+        image, depth = f"images/frame_{view.index:06d}.png", f"depth/frame_{view.index:06d}.png"
+        atomic_write_bytes(folder / image, encode_color(view.color, ".png"))
+        atomic_write_bytes(folder / depth, encode_depth_png(view.depth, DEPTH_UNITS_PER_METRE))
+        frames.append((image, depth, view.c2w))
+    write_pointcloud(folder / POINTS_FILE, gaussians)
+    atomic_write_text(folder / "transforms.json", json.dumps(transforms(frames, camera), indent=2) + "\n")
+    return len(frames)

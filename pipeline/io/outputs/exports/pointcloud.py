@@ -1,0 +1,26 @@
+"""The map as a coloured point cloud: one point per Gaussian centre (PLY: x y z, red green blue).
+
+Any point-cloud tool reads it (Open3D, CloudCompare, MeshLab), and nerfstudio's splatfacto
+starts from it when transforms.json names it (`ply_file_path`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.ply import ply_bytes
+from pipeline.render.types import Gaussians
+
+
+def pointcloud_bytes(gaussians: Gaussians) -> bytes:
+    xyz = gaussians.means.detach().float().cpu().numpy()
+    rgb = (gaussians.colors.detach().float().clamp(0, 1) * 255).round().cpu().numpy().astype(np.uint8)
+    columns = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
+    return ply_bytes(columns)
+
+
+def write_pointcloud(path: Path, gaussians: Gaussians) -> None:
+    atomic_write_bytes(path, pointcloud_bytes(gaussians))

@@ -1,0 +1,354 @@
+"""The run folder: every file a run, its profile, its recording and its exports write is named,
+written, read and removed here and nowhere else."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from pipeline import __version__
+from pipeline.config import Config, load_config, to_toml
+from pipeline.errors import DataError, OutputError
+from pipeline.io.files.atomic import atomic_export, atomic_write_all, atomic_write_text, bytes_writer
+from pipeline.io.files.g2o import G2oEdge, g2o_text
+from pipeline.io.files.trajectory import tum_trajectory_text
+from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
+from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
+from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics
+from pipeline.io.outputs.ply import gaussian_ply_bytes, write_ply
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_lock import LOCK_NAME, RunLock
+from pipeline.io.outputs.run_metrics import RunMetrics
+from pipeline.io.sources.live.recording import COLOR_LIST
+from pipeline.io.sources.live.recording import WRITTEN as RECORDING_FILES
+from pipeline.render.types import Gaussians
+from pipeline.slam.loops.pose_graph import chained
+from pipeline.slam.state import Checkpoint, LoopState
+
+RESULTS = (
+    "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
+    "trace.json", "profile.txt", "intrinsics.json", "exports.json", "trajectory_as_tracked.txt", "pose_graph.g2o",
+)  # fmt: skip
+RECORDING = "recording"  # serve's live.record: the input in the TUM layout
+MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
+MARKER_FORMAT = "gsplatam.run"
+# The folders a run or an export fills, with what it writes into each (globs in the folder).
+FILLED_FOLDERS = {RECORDING: RECORDING_FILES, FORMATS["nerfstudio"]: NERFSTUDIO_FILES}
+
+
+class RunFolder:
+    """The files of one run in an existing folder: config, per-frame CSV, metrics, trajectories,
+    map, checkpoint, camera, profile, recording and exports. An `--overwrite` removes exactly
+    these (`remove_earlier_run`): a user's own files beside them stay."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.config = path / "config.toml"
+        self.frames_csv = path / "frames.csv"
+        self.metrics = path / "metrics.json"
+        self.trajectory = path / "trajectory.txt"  # estimated camera-to-world, TUM format
+        self.groundtruth = path / "groundtruth.txt"  # reference camera-to-world, TUM format
+        self.trajectory_as_tracked = path / "trajectory_as_tracked.txt"  # with loop closure: before its corrections
+        self.pose_graph = path / "pose_graph.g2o"  # with loop closure: the keyframe pose graph (g2o's format)
+        self.map = path / "map.ply"
+        self.checkpoint = path / "checkpoint.safetensors"
+        self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
+        self.trace = path / "trace.json"  # --profile: the torch profiler's Chrome trace
+        self.profile = path / "profile.txt"  # --profile: per-stage times, top kernels and host calls
+        self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
+        self.marker = path / MARKER  # this is a run folder of gsplatam (`--overwrite` acts on no other)
+        self.lock = path / LOCK_NAME  # held while a process writes the folder (run_lock.py)
+        self.exports_record = path / "exports.json"  # each export's path and the map it came from
+        self._frames_file: IO[str] | None = None
+
+    @staticmethod
+    def existing(path: Path) -> RunFolder:
+        """A run folder written before (DataError when `path` holds no checkpoint)."""
+        folder = RunFolder(path)
+        if not folder.checkpoint.is_file():
+            raise DataError(f"{path} is not a run folder (no {folder.checkpoint.name})")
+        return folder
+
+    @contextlib.contextmanager
+    def claimed(self) -> Iterator[RunFolder]:
+        """This folder, locked while the caller writes it (RunFolderBusy, naming the holder,
+        while another process does). The folder must exist."""
+        with RunLock(self.path):
+            yield self
+
+    def is_run(self) -> bool:
+        """Whether the folder is a run folder of this tool: it carries the run marker, or (made by
+        a version before the marker) it holds both config.toml and frames.csv."""
+        if self.marker.is_file() and not self.marker.is_symlink():
+            return True
+        return self.config.is_file() and self.frames_csv.is_file()
+
+    def mark(self) -> None:
+        """Write the run marker (the folder is a run folder of this tool)."""
+        marker = {"format": MARKER_FORMAT, "version": __version__}
+        with _writing(self.marker):
+            atomic_write_text(self.marker, json.dumps(marker) + "\n")
+
+    def holds_results(self) -> bool:
+        """Whether a run saved anything here: a checkpoint (its first save) or a recording."""
+        return self.checkpoint.is_file() or self.recorded()
+
+    def owns(self, path: Path) -> bool:
+        """Whether `path` is one of the files only a run writes here (its results, config,
+        marker, lock, or anything in its recording): an export never writes onto one."""
+        if path == self.path or not path.is_relative_to(self.path):
+            return False
+        return path.relative_to(self.path).parts[0] in {*RESULTS, self.config.name, MARKER, LOCK_NAME, RECORDING}
+
+    def remove_unfinished(self) -> None:
+        """Remove what a run that saved nothing wrote (config, frames.csv, marker, lock, ...),
+        then the folder if nothing else is left in it."""
+        self.remove_earlier_run()
+        for path in (self.marker, self.lock):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        with contextlib.suppress(OSError):
+            self.path.rmdir()
+
+    def export(self, fmt: str) -> Path:
+        """Where `gsplatam export --to fmt` writes by default."""
+        return self.path / FORMATS[fmt]
+
+    def recorded(self) -> bool:
+        """Whether the folder holds a live session's recording (a dataset `gsplatam run` reads)."""
+        return (self.recording / COLOR_LIST).is_file()
+
+    def earlier_run(self) -> list[str]:
+        """The names of what an earlier run (or an export of it) left here; [] for none."""
+        names = [*RESULTS, RECORDING, *FORMATS.values()]
+        return [name for name in dict.fromkeys(names) if (self.path / name).exists()]
+
+    def remove_earlier_run(self) -> None:
+        """Remove what an earlier run and its exports wrote (its config, `earlier_run`, the files
+        they put into their folders, temporary files left by a kill), and nothing else."""
+        for name in [*self._recorded_exports_inside(), self.config.name, *self.earlier_run()]:
+            path = self.path / name
+            if path.is_symlink():  # the link goes, never what it points at
+                path.unlink()
+            elif name in FILLED_FOLDERS:
+                _remove_filled(path, FILLED_FOLDERS[name])
+            elif path.is_file():
+                path.unlink()
+        for path in self.path.glob(".*.tmp"):  # files, and folders of a killed multi-file export
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+
+    def exports_made(self) -> dict[str, Any]:
+        """exports.json: format -> {path, frames, frames_mapped, gaussians, map_version[, stale]};
+        {} where there is none (or it cannot be read)."""
+        try:
+            record = json.loads(self.exports_record.read_text())
+        except (OSError, ValueError):
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def record_export(self, fmt: str, target: Path, checkpoint: Checkpoint) -> None:
+        """Note in exports.json that `target` holds `fmt` of the map of `checkpoint`."""
+        record = self.exports_made()
+        record[fmt] = {
+            "path": str(target.relative_to(self.path) if target.is_relative_to(self.path) else target.absolute()),
+            "frames": checkpoint.frames_done,
+            "frames_mapped": checkpoint.mapping.frames_seen,
+            "gaussians": len(checkpoint.gaussians),
+            "map_version": self._map_version(checkpoint.frames_done),
+        }
+        with _writing(self.exports_record):
+            atomic_write_text(self.exports_record, _json(record))
+
+    def _stale_exports(self, checkpoint: Checkpoint) -> dict[str, Any] | None:
+        """exports.json with every export of another map than `checkpoint`'s marked stale; None
+        when nothing changes (no export, or all marked already)."""
+        record, changed = self.exports_made(), False
+        for entry in record.values():
+            if "stale" not in entry and (entry.get("frames"), entry.get("gaussians")) != (
+                checkpoint.frames_done,
+                len(checkpoint.gaussians),
+            ):
+                entry["stale"] = f"made from {entry.get('frames')} frames; the map now holds {checkpoint.frames_done}"
+                changed = True
+        return record if changed else None
+
+    def _recorded_exports_inside(self) -> list[str]:
+        """The exports exports.json names inside this folder (a user's --output elsewhere stays)."""
+        paths = [Path(str(entry.get("path", ""))) for entry in self.exports_made().values()]
+        return [str(p) for p in paths if p.parts and not p.is_absolute() and ".." not in p.parts]
+
+    def _map_version(self, frames_done: int) -> int | None:
+        """The map version frames.csv gives the last of the first `frames_done` frames."""
+        try:
+            with open(self.frames_csv, newline="") as f:
+                rows = [row for row in csv.DictReader(f) if row.get("index", "").isdigit()]
+        except OSError:
+            return None
+        kept = [row for row in rows if int(row["index"]) < frames_done]
+        return int(kept[-1]["map_version"]) if kept and kept[-1]["map_version"].isdigit() else None
+
+    def write_config(self, config: Config) -> None:
+        with _writing(self.config):
+            atomic_write_text(self.config, to_toml(config))
+
+    def read_config(self) -> Config:
+        """The run's config.toml (UserError naming it when it is missing or not a config)."""
+        return load_config(config_file=self.config)
+
+    def append_frame(self, row: FrameRow) -> None:
+        """One CSV line, flushed at once: the one file appended to rather than replaced, so a
+        kill loses no line written before it (a line cut off by a full disk is dropped by
+        `keep_frames` on resume)."""
+        if self._frames_file is None:
+            new = not self.frames_csv.exists() or self.frames_csv.stat().st_size == 0
+            fd = os.open(self.frames_csv, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            self._frames_file = open(fd, "a", newline="")  # never through a link
+            if new:
+                csv.writer(self._frames_file).writerow(COLUMNS)
+        csv.writer(self._frames_file).writerow(row.cells())
+        self._frames_file.flush()
+
+    def close(self) -> None:
+        frames_file, self._frames_file = self._frames_file, None
+        if frames_file is not None:
+            frames_file.close()
+
+    def keep_frames(self, frames_done: int) -> None:
+        """Drop the frames.csv lines of frames after the first `frames_done` (written after the
+        checkpoint a resume continues from) and any incomplete last line."""
+        if not self.frames_csv.exists():
+            return
+        lines = self.frames_csv.read_text(errors="replace").splitlines(keepends=True)
+        kept = [line for line in lines if line.endswith("\n") and _row_index(line) in range(frames_done)]
+        with _writing(self.frames_csv):
+            atomic_write_text(self.frames_csv, "".join([",".join(COLUMNS) + "\r\n", *kept]))
+
+    def write_state(
+        self, checkpoint: Checkpoint, run: RunDescription, timestamps: np.ndarray, reference: np.ndarray | None
+    ) -> None:
+        """Trajectory (and reference), map and checkpoint of the run `run` describes, from a
+        SLAM checkpoint on the host; `timestamps` [N] seconds and `reference` [N, 4, 4]
+        camera-to-world per pose. All are replaced, or (a write failing, e.g. on a full disk)
+        none: the last complete set stays."""
+        files = {
+            self.trajectory: tum_trajectory_text(timestamps, checkpoint.poses.double().numpy()).encode(),
+            self.map: gaussian_ply_bytes(checkpoint.gaussians),
+            self.checkpoint: checkpoint_bytes(checkpoint, run),
+        }
+        if reference is not None:
+            files[self.groundtruth] = tum_trajectory_text(timestamps, reference).encode()
+        if (loops := checkpoint.mapping.loops) is not None:
+            tracked = checkpoint.tracking.tracked_poses
+            tracked = checkpoint.poses if tracked is None else tracked
+            files[self.trajectory_as_tracked] = tum_trajectory_text(timestamps, tracked.double().numpy()).encode()
+            files[self.pose_graph] = pose_graph_text(loops).encode()
+        if (stale := self._stale_exports(checkpoint)) is not None:
+            files[self.exports_record] = _json(stale).encode()
+        atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
+
+    def write_map(self, gaussians: Gaussians) -> None:
+        write_ply(self.map, gaussians)
+
+    def read_checkpoint(self) -> tuple[Checkpoint, RunDescription]:
+        """-> (the checkpoint, the run it was saved by); DataError if there is none or it is
+        not one this version reads."""
+        legacy = self.path / LEGACY_NAME
+        if not self.checkpoint.exists() and legacy.exists():
+            raise DataError(
+                f"{legacy} is a checkpoint of gsplatam 0.1, a pickle, which is never loaded (unpickling can run "
+                f"code): run the sequence again to get {self.checkpoint.name}"
+            )
+        return read_checkpoint(self.checkpoint)
+
+    def read_intrinsics(self) -> CameraIntrinsics:
+        return read_intrinsics(self.intrinsics)
+
+    def read_metrics(self) -> RunMetrics | None:
+        """metrics.json as any version wrote it, or None where there is none (or it cannot be read)."""
+        try:
+            return RunMetrics.from_json(json.loads(self.metrics.read_text()))
+        except (OSError, ValueError, TypeError):
+            return None
+
+    def write_metrics(self, metrics: RunMetrics) -> None:
+        with _writing(self.metrics):
+            atomic_write_text(self.metrics, _json(metrics.to_json()))
+
+    def write_trace(self, export: Callable[[Path], None]) -> None:
+        """The profiler's Chrome trace, which `export` writes to the path it is given."""
+        atomic_export(self.trace, export)
+
+    def write_profile(self, text: str) -> None:
+        atomic_write_text(self.profile, text)
+
+
+def run_owning(path: Path) -> RunFolder | None:
+    """The run folder (a run of this tool, or a folder holding a checkpoint) among `path`'s
+    parents of which `path` is one of its own files (`RunFolder.owns`), or None. The rule of what
+    may be written where: a run folder's own files are written by its run only."""
+    for parent in path.parents:
+        folder = RunFolder(parent)
+        if folder.owns(path) and (folder.is_run() or folder.checkpoint.is_file()):
+            return folder
+    return None
+
+
+def _json(value: Any) -> str:
+    return json.dumps(value, indent=2, sort_keys=True) + "\n"
+
+
+def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:
+    """Remove the files matching `written` (and temporary files) from `folder`, then the
+    folders left empty: a folder holding anything else stays with it."""
+    for pattern in (*written, "**/.*.tmp"):
+        for path in folder.glob(pattern):
+            if path.is_file() and not _through_link(path, folder):
+                path.unlink()
+    for path in sorted((p for p in folder.rglob("*") if p.is_dir()), reverse=True) + [folder]:
+        with contextlib.suppress(OSError):
+            path.rmdir()
+
+
+def _through_link(path: Path, folder: Path) -> bool:
+    """Whether `path` lies in `folder` only through a symlinked folder (removing it would reach
+    outside the run folder)."""
+    return any((folder / part).is_symlink() for part in path.relative_to(folder).parents if part.parts)
+
+
+@contextlib.contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """An OSError writing `path` as the OutputError a user sees (one line, exit code 2)."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def pose_graph_text(loops: LoopState) -> str:
+    """Loop closure's keyframe pose graph in g2o's format: every keyframe kept, the odometry
+    edges and the loop edges the optimum kept."""
+    graph = chained(loops.node_c2w, loops.odometry_information, tuple(loops.loops))
+    edges = [G2oEdge(e.first, e.second, e.relative, e.information) for e in graph.edges]
+    return g2o_text(graph.c2w, edges)
+
+
+def _row_index(line: str) -> int | None:
+    """The frame index of a complete frames.csv line, None for the header or a malformed line."""
+    fields = next(csv.reader([line]), [])
+    if len(fields) != len(COLUMNS) or not fields[0].isdigit():
+        return None
+    return int(fields[0])

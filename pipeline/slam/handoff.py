@@ -1,0 +1,56 @@
+"""What SLAM's two sides hand each other, and what SLAM reports per frame.
+
+The tracking side hands each frame to the mapping side as a `TrackedFrame`, carrying the
+`TrackerMark` a checkpoint cut at that frame needs; `FrameResult` is what both sides fill in for
+the outside world (frames.csv, the status endpoint, metrics)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.frame import DeviceFrame
+
+
+@dataclass
+class FrameResult:
+    index: int
+    timestamp: float
+    c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the host
+    seconds: dict[str, float]  # tracking, densify (with keyframe selection), mapping, total (their sum)
+    gaussians: int  # in the map after this frame's mapping (or the latest map, when not mapped)
+    added: int
+    tracking_loss: float  # per tracked pixel at the chosen pose (adam: its loss; align: squared point-to-plane, m^2)
+    coverage: float  # fraction of valid-depth pixels used by tracking
+    lost: str = ""  # why the pose is not to be trusted (the frame is then not mapped); empty when it is
+    c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
+    warning: str = ""  # why tracking looked weak though its pose is used and mapped (low map coverage)
+    relocalised_from: int | None = None  # after a loss: the keyframe (frame index) whose pose tracking held from
+    mapped: bool = True  # False: tracked only (lost, or skipped by a live session's mapping)
+    map_version: int = 0  # the map version published after this frame (the latest one when not mapped)
+    received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival
+    age_at_start_s: float | None = None  # live: seconds from the frame's arrival to the start of its tracking
+    age_s: float | None = None  # live: seconds from the frame's arrival to its result (set by the sink)
+
+
+@dataclass(frozen=True)
+class TrackerMark:
+    """The tracking side's state just after one frame: a checkpoint cut there takes the first
+    `poses_done` poses (and states) and `losses_done` loss-history entries, and the device
+    pose of the last frame tracked well by then."""
+
+    poses_done: int
+    losses_done: int
+    prior: torch.Tensor | None  # [4, 4] camera-to-world
+
+
+@dataclass
+class TrackedFrame:
+    """What tracking hands to mapping."""
+
+    frame: DeviceFrame
+    c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the device
+    result: FrameResult  # the tracking fields filled in; mapping fills the rest
+    mark: TrackerMark
+    ready: torch.cuda.Event | None  # recorded after tracking on its stream; None on the CPU

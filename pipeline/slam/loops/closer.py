@@ -1,0 +1,152 @@
+"""Loop closure inside the mapping side: a node of the keyframe pose graph for every keyframe
+kept, the loop search at each (`loop_closure.detect_loops`), and, when the graph's optimum keeps
+an accepted loop, the corrected keyframe poses with the map moved along.
+
+Each Gaussian remembers the node of the keyframe that created it (`LoopState.creator`): one
+seeded by a frame that becomes a keyframe belongs to that keyframe's node; one seeded by another
+frame to the newest keyframe's (the frame was tracked against the map around it, and tracking
+follows that keyframe: `TrackingFrontend.poses_with`). A correction moves every Gaussian rigidly
+with its node's correction, c2w_new @ inv(c2w_old); mapping then re-fits where old and new
+parts of the map overlap.
+
+Odometry edges join consecutive nodes. Their relative poses are the current estimates, derived
+again before each optimisation (so that mapping's refinement of keyframe poses counts); their
+information is the dense alignment of the new keyframe to the previous one (`verify`), or
+`odometry_sigma_*` where that alignment judged itself unsound.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import torch
+
+from pipeline.config import LoopConfig, TrackingConfig
+from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
+from pipeline.slam.loops.candidates import descriptor
+from pipeline.slam.loops.detection import ClosedLoop, detect_loops, verify
+from pipeline.slam.loops.map_correction import corrections
+from pipeline.slam.loops.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
+from pipeline.slam.state import LoopState
+
+F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A loop closed: every node's pose before and after, and the record."""
+
+    old_c2w: torch.Tensor  # [K, 4, 4] float64 camera-to-world per node, before
+    node_c2w: torch.Tensor  # [K, 4, 4] float64: after (the optimum)
+    closed: ClosedLoop  # its published_s still 0
+    started: float  # time.perf_counter() when the detection began
+
+
+class LoopCloser:
+    def __init__(self, config: LoopConfig, tracking: TrackingConfig, samples: int, seed: int) -> None:
+        self.config = config
+        self.tracking = tracking
+        self.samples = samples  # pixels sampled for the candidates' overlap (keyframes.overlap_samples)
+        self.seed = seed
+        self.state = LoopState.empty()
+        self._descriptors: dict[int, torch.Tensor] = {}  # keyframe position -> descriptor, computed once
+
+    def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
+        """Continue from `saved` (None: a checkpoint without loop closure's state: a graph that
+        starts at the next keyframe, the `gaussians` already in the map owned by no node)."""
+        if saved is None:
+            saved = replace(LoopState.empty(), creator=torch.full((gaussians,), -1, dtype=torch.int64))
+        self.state = replace(saved, creator=saved.creator.to(device), node_positions=list(saved.node_positions))
+        self._descriptors = {}
+
+    def graph_poses(self, keyframes: list[Keyframe]) -> torch.Tensor:
+        """[K, 4, 4] float64 of the nodes: the stored keyframes' current poses, the last known of the others."""
+        c2w = self.state.node_c2w.clone()
+        node_of = self.state.node_of()
+        for keyframe in keyframes:
+            if keyframe.pose.position in node_of:
+                c2w[node_of[keyframe.pose.position]] = keyframe.c2w.detach().to("cpu", F64)
+        return c2w
+
+    def creator_node(self, keeps: bool) -> int:
+        """The node the Gaussians seeded now belong to: the keyframe about to be kept, else the newest."""
+        return len(self.state.node_positions) - (0 if keeps else 1)
+
+    def seeded(self, count: int, keeps: bool, device: torch.device) -> None:
+        """`count` Gaussians were appended to the map (see `creator_node`)."""
+        added = torch.full((count,), self.creator_node(keeps), dtype=torch.int64, device=device)
+        self.state.creator = torch.cat([self.state.creator.to(device), added])
+
+    def kept(self, positions: torch.Tensor | None) -> None:
+        """The map was cut to the Gaussians at `positions` [M] (None: no change)."""
+        if positions is not None:
+            self.state.creator = self.state.creator[positions.to(self.state.creator.device)]
+
+    def keyframe_kept(self, keyframes: list[Keyframe], intrinsics: torch.Tensor) -> Correction | None:
+        """The newest of `keyframes` (the store, oldest first) was just kept: its node and
+        odometry edge, then the loop search; -> the correction when a loop is closed."""
+        started = time.perf_counter()
+        current = keyframes[-1]
+        state, node = self.state, len(self.state.node_positions)
+        state.node_positions.append(current.pose.position)
+        state.node_c2w = torch.cat([state.node_c2w, current.c2w.detach().to("cpu", F64)[None]])
+        state.odometry_information = torch.cat(
+            [state.odometry_information, self._odometry(keyframes, intrinsics, node)[None]]
+        )
+        known = self._descriptors  # those of keyframes dropped from the store go; after a resume they are made again
+        self._descriptors = {}
+        for keyframe in keyframes:
+            position = keyframe.pose.position
+            self._descriptors[position] = known[position] if position in known else descriptor(keyframe.color)
+        descriptors = torch.stack(list(self._descriptors.values()))
+        generator = torch.Generator().manual_seed(self.seed + node)  # no state to keep: one draw per node
+        pixels = sample_valid_pixels(current.depth, self.samples, generator)
+        detection = detect_loops(keyframes, descriptors, intrinsics, pixels, self.config, self.tracking)
+        state.tally = state.tally.counted(detection, time.perf_counter() - started)
+        node_of = state.node_of()
+        found = [
+            replace(edge, first=node_of[keyframes[edge.first].pose.position], second=node) for edge in detection.edges()
+        ]
+        if not found:
+            return None
+        detected = time.perf_counter()
+        graph = self._graph(keyframes, [*state.loops, *found])
+        solution = optimise(graph, self.config)
+        state.tally = state.tally.optimised(solution)
+        state.loops = [edge for edge in solution.graph.edges if edge.loop]
+        if not solution.changed:
+            return None
+        state.node_c2w = solution.c2w
+        moves = corrections(graph.c2w, solution.c2w)
+        largest = max((motion_size(c) for c in moves), key=lambda size: size.translation_m)
+        kept_now = [e for e in solution.kept if e.second == node]
+        matched = tuple(self._frame_of(e.first, keyframes) for e in kept_now)
+        seconds = time.perf_counter()
+        closed = ClosedLoop(current.index, matched, largest, detected - started, seconds - detected, 0.0)
+        return Correction(graph.c2w, solution.c2w, closed, started)
+
+    def published(self, correction: Correction) -> ClosedLoop:
+        """The corrected map of `correction` is published now: -> its record, kept in the state."""
+        closed = replace(correction.closed, published_s=time.perf_counter() - correction.started)
+        self.state.closed.append(closed)
+        return closed
+
+    def _frame_of(self, node: int, keyframes: list[Keyframe]) -> int:
+        """The frame index of a node's keyframe (its position where it left the store)."""
+        position = self.state.node_positions[node]
+        return next((k.index for k in keyframes if k.pose.position == position), position)
+
+    def _odometry(self, keyframes: list[Keyframe], intrinsics: torch.Tensor, node: int) -> torch.Tensor:
+        """The information [6, 6] of the edge from the keyframe before the newest (node - 1: the
+        store keeps its newest keyframes) to the newest; zeros for the first node."""
+        if node == 0:
+            return torch.zeros(6, 6, dtype=F64)
+        fallback = fixed_information(self.config.odometry_sigma_m, self.config.odometry_sigma_deg)
+        verification = verify(keyframes[-1], keyframes[-2], intrinsics, self.config, self.tracking)
+        return fallback if verification.failure else verification.information
+
+    def _graph(self, keyframes: list[Keyframe], loops: list[Edge]) -> PoseGraph:
+        """Nodes at the current estimates (stored keyframes' poses, the last known of the others),
+        odometry edges at the relative poses they imply, and `loops`."""
+        return chained(self.graph_poses(keyframes), self.state.odometry_information, tuple(loops))

@@ -1,0 +1,250 @@
+"""Loop closure's front half: whether the newest keyframe sees again what an old one saw.
+
+At each new keyframe, the candidates (`loop_candidates`: near by the current estimates, at
+least `min_keyframes_back` older, the most alike first) are each verified by dense RGB-D
+alignment of the current keyframe against the candidate's stored colour and depth
+(`rgbd_alignment`; the candidate plays the render, its silhouette 1 where its depth is valid),
+started from the relative pose the estimates imply and judged as the tracker judges itself (`SolveReport`, under the `loops.*` limits). A verified
+candidate is accepted only when a second verified candidate puts the current keyframe at the
+same place: two old views agreeing on one pose are rarely both wrong. The pose graph then keeps
+an accepted loop only if its optimum agrees with it (`pose_graph.optimise`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from enum import Enum
+
+import torch
+
+from pipeline.config import LoopConfig, TrackingConfig
+from pipeline.geometry import invert_pose
+from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.loops.candidates import LoopCandidate, loop_candidates
+from pipeline.slam.loops.pose_graph import Edge, GraphSolution, MotionSize, alignment_information, motion_size
+from pipeline.slam.tracking.align_tracker import SolveReport, level_params, prepare_rgbd, read_report
+from pipeline.slam.tracking.pyramid import check_pyramid_fits
+from pipeline.slam.tracking.rgbd_alignment import align
+
+
+class Verdict(Enum):
+    ACCEPTED = "accepted"
+    FAILED_VERIFICATION = "failed verification"  # the alignment judged itself unsound
+    UNCONFIRMED = "unconfirmed"  # verified, but no second verified candidate agrees
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The dense alignment of the current keyframe to an old one."""
+
+    report: SolveReport
+    coverage: float  # inliers / valid-depth pixels of the current keyframe
+    relative: torch.Tensor  # [4, 4] float64: the current camera in the old one's, as aligned
+    information: torch.Tensor  # [6, 6] float64 of `relative` (pose_graph's convention)
+    failure: str  # empty when verified
+
+
+@dataclass(frozen=True)
+class LoopCheck:
+    """One candidate's verification and verdict."""
+
+    candidate: LoopCandidate
+    verification: Verification
+    verdict: Verdict
+    reason: str  # why not accepted; empty when accepted
+
+    @property
+    def verified(self) -> bool:
+        return self.verdict is not Verdict.FAILED_VERIFICATION
+
+
+@dataclass(frozen=True)
+class LoopDetection:
+    """What one keyframe's loop search found."""
+
+    current: int  # the current keyframe's position
+    checks: tuple[LoopCheck, ...]  # one per candidate, most similar first
+
+    @property
+    def detected(self) -> int:
+        return len(self.checks)
+
+    @property
+    def verified(self) -> int:
+        return sum(check.verified for check in self.checks)
+
+    @property
+    def accepted(self) -> int:
+        return sum(check.verdict is Verdict.ACCEPTED for check in self.checks)
+
+    @property
+    def rejected(self) -> int:
+        return self.detected - self.accepted
+
+    def edges(self) -> tuple[Edge, ...]:
+        """The accepted loops as pose-graph edges (candidate -> current)."""
+        return tuple(
+            Edge(
+                check.candidate.position,
+                self.current,
+                check.verification.relative,
+                check.verification.information,
+                loop=True,
+            )
+            for check in self.checks
+            if check.verdict is Verdict.ACCEPTED
+        )
+
+
+@dataclass(frozen=True)
+class LoopTally:
+    """Loop closure's counts over a run: candidates detected, verified by alignment, accepted
+    (and kept by the pose graph), rejected, and why."""
+
+    detected: int = 0
+    verified: int = 0
+    accepted: int = 0
+    rejected: int = 0
+    failed_verification: int = 0  # the alignment judged itself unsound
+    unconfirmed: int = 0  # verified, but no second candidate agreed
+    dropped_by_graph: int = 0  # accepted, then left out by the pose graph's optimum
+    searches: int = 0  # keyframes searched (every keyframe kept)
+    search_s: float = 0.0  # seconds over all searches: the odometry edge's alignment, candidates, verification
+
+    def counted(self, detection: LoopDetection, seconds: float) -> LoopTally:
+        """With one keyframe's search, which took `seconds`."""
+        verdicts = [check.verdict for check in detection.checks]
+        return replace(
+            self,
+            searches=self.searches + 1,
+            search_s=self.search_s + seconds,
+            detected=self.detected + detection.detected,
+            verified=self.verified + detection.verified,
+            accepted=self.accepted + detection.accepted,
+            rejected=self.rejected + detection.rejected,
+            failed_verification=self.failed_verification + verdicts.count(Verdict.FAILED_VERIFICATION),
+            unconfirmed=self.unconfirmed + verdicts.count(Verdict.UNCONFIRMED),
+        )
+
+    def optimised(self, solution: GraphSolution) -> LoopTally:
+        """After a pose-graph optimisation: its dropped loops count as rejected, not accepted."""
+        dropped = len(solution.dropped)
+        return replace(
+            self,
+            accepted=self.accepted - dropped,
+            rejected=self.rejected + dropped,
+            dropped_by_graph=self.dropped_by_graph + dropped,
+        )
+
+
+@dataclass(frozen=True)
+class ClosedLoop:
+    """A loop closed: the pose graph optimised with its accepted edges, the map moved with it."""
+
+    frame: int  # the current keyframe's frame index
+    matched: tuple[int, ...]  # frame indices of the old keyframes whose loop edges the optimum kept
+    correction: MotionSize  # the largest correction of a keyframe pose it made
+    detect_s: float  # seconds: candidates and their verification
+    correct_s: float  # seconds: the pose graph's optimisation and moving the map
+    published_s: float  # seconds from the detection's start to the corrected map published
+
+
+def closed_loop_line(loop: ClosedLoop) -> str:
+    """The log line of a closed loop."""
+    matched = ", ".join(str(frame) for frame in loop.matched)
+    size = loop.correction
+    return (
+        f"loop closed at frame {loop.frame} with frame{'s' if len(loop.matched) > 1 else ''} {matched}: keyframes"
+        f" moved up to {100 * size.translation_m:.1f} cm, {size.rotation_deg:.1f} deg; detection"
+        f" {1000 * loop.detect_s:.0f} ms, correction {1000 * loop.correct_s:.0f} ms, corrected map published"
+        f" {1000 * loop.published_s:.0f} ms after the detection began"
+    )
+
+
+def verification_limits(tracking: TrackingConfig, config: LoopConfig) -> TrackingConfig:
+    """The tracker's self-judgement under loop closure's stricter limits."""
+    return replace(
+        tracking,
+        align_min_inliers=config.min_inliers,
+        align_min_conditioning=config.min_conditioning,
+        align_max_residual_m=config.max_residual_m,
+        align_max_intensity_rms=config.max_intensity_rms,
+    )
+
+
+def verify(
+    current: Keyframe, old: Keyframe, intrinsics: torch.Tensor, config: LoopConfig, tracking: TrackingConfig
+) -> Verification:
+    """Align `current` (colour, depth) to `old` (its stored colour and depth as the target, valid
+    depth as the silhouette), from the relative pose their estimates imply, over the
+    `verify_iters` schedule; judged by `SolveReport.failure` under `verification_limits` and
+    by coverage (`min_coverage`)."""
+    levels = len(config.verify_iters)
+    check_pyramid_fits(levels, current.depth.shape[0], current.depth.shape[1])
+    silhouette = (old.depth > 0).to(old.depth.dtype)
+    images = (current.color, current.depth, intrinsics, old.color, old.depth, silhouette)
+    sources, targets = prepare_rgbd(*images, levels, tracking.align_min_silhouette)
+    start = (invert_pose(old.c2w.double()) @ current.c2w.double()).to(sources[0].points.device)
+    params = level_params(tracking, levels)
+    state = align(sources, targets, params, config.verify_iters, start=start)
+    report = read_report(state.fit, sources[0].valid)
+    coverage = report.inliers / max(report.valid, 1)
+    failure = report.failure(verification_limits(tracking, config))
+    if not failure and coverage < config.min_coverage:
+        failure = f"only {coverage:.0%} of the keyframe's pixels fit the old one (at least {config.min_coverage:.0%})"
+    information = alignment_information(state.fit.hessian, state.pose, config.information_scale)
+    return Verification(report, coverage, state.pose.cpu(), information, failure)
+
+
+def implied_pose(old: Keyframe, relative: torch.Tensor) -> torch.Tensor:
+    """The current keyframe's camera-to-world [4, 4] float64 that an alignment to `old` implies."""
+    return old.c2w.detach().to("cpu", torch.float64) @ relative
+
+
+def agree(a: torch.Tensor, b: torch.Tensor, config: LoopConfig) -> bool:
+    """Whether two camera-to-world poses [4, 4] lie within `agree_m` and `agree_deg`."""
+    difference = motion_size(invert_pose(a) @ b)
+    return difference.translation_m <= config.agree_m and difference.rotation_deg <= config.agree_deg
+
+
+def detect_loops(
+    keyframes: Sequence[Keyframe],
+    descriptors: torch.Tensor,
+    intrinsics: torch.Tensor,
+    pixels: torch.Tensor,
+    config: LoopConfig,
+    tracking: TrackingConfig,
+) -> LoopDetection:
+    """The loop search for the newest of `keyframes`: candidates (`loop_candidates`), each
+    verified (`verify`), the verified ones accepted where another verified one agrees on the
+    current keyframe's pose (`agree`)."""
+    current = keyframes[-1]
+    candidates = loop_candidates(keyframes, descriptors, intrinsics, pixels, config)
+    verifications = [verify(current, keyframes[c.position], intrinsics, config, tracking) for c in candidates]
+    implied = [implied_pose(keyframes[c.position], v.relative) for c, v in zip(candidates, verifications)]
+    checks = [
+        LoopCheck(candidate, verification, verdict, reason)
+        for candidate, verification, (verdict, reason) in zip(
+            candidates, verifications, verdicts(verifications, implied, config)
+        )
+    ]
+    return LoopDetection(len(keyframes) - 1, tuple(checks))
+
+
+def verdicts(
+    verifications: Sequence[Verification], implied: Sequence[torch.Tensor], config: LoopConfig
+) -> list[tuple[Verdict, str]]:
+    """Per candidate, (verdict, why not accepted): failed verification; else accepted when
+    another verified candidate's implied pose of the current keyframe (`implied`, [4, 4]
+    float64 each) agrees with its own; else unconfirmed."""
+    sound = [not verification.failure for verification in verifications]
+    result = []
+    for k, verification in enumerate(verifications):
+        if not sound[k]:
+            result.append((Verdict.FAILED_VERIFICATION, verification.failure))
+        elif any(sound[j] and j != k and agree(implied[k], implied[j], config) for j in range(len(implied))):
+            result.append((Verdict.ACCEPTED, ""))
+        else:
+            result.append((Verdict.UNCONFIRMED, "no second verified candidate puts the keyframe at the same pose"))
+    return result

@@ -1,0 +1,89 @@
+"""The typed records of a run folder: metrics.json in one shape (read in any earlier one), the
+run description a checkpoint keeps, and a frames.csv line."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.io.outputs.run_description import RunDescription
+from pipeline.io.outputs.run_metrics import AteRecord, ClosedLoopRow, LoopRecord, RunMetrics, TimingRecord
+from pipeline.slam.handoff import FrameResult
+from pipeline.slam.loops.detection import ClosedLoop, LoopTally
+from pipeline.slam.loops.pose_graph import MotionSize
+
+TIME = {"tracking_s": 0.01, "densify_s": 0.0, "mapping_s": 0.02, "total_s": 0.03, "frames_timed": 4,
+        "warmup_frames_excluded": 2, "fps_wall": 30.0, "fps_steady": 33.0}  # fmt: skip
+
+
+def test_metrics_round_trip_through_json() -> None:
+    metrics = RunMetrics(
+        "room", frames=6, gaussians=900, time=TimingRecord(**TIME), ate=AteRecord(0.5, 0.4, 0.3, 0.9, 6),
+        evaluation="complete", counters={"received": 6}, runtime={"wall_s": 1.0},
+    )  # fmt: skip
+    assert RunMetrics.from_json(metrics.to_json()) == metrics and metrics.evaluation_complete
+
+
+@pytest.mark.parametrize(
+    "earlier, source, ate_cm, complete",
+    [
+        ({"dataset": "room", "ate": {"rmse_cm": 0.5, "mean_cm": 0.4}, "evaluation": "complete"}, "room", 0.5, True),
+        ({"source": "record3d", "ate_rmse_cm": 1.5, "counters": {"received": 3}}, "record3d", 1.5, False),
+        ({"dataset": "room", "ate": None, "render": {"psnr_db": 30.0, "ssim": 0.9, "depth_l1_cm": 1.0,
+          "frames_evaluated": 2, "every": 5}}, "room", None, True),  # gsplatam 0.2: no `evaluation`
+    ],
+)  # fmt: skip
+def test_metrics_of_earlier_versions_are_read(earlier: dict, source: str, ate_cm: float | None, complete: bool) -> None:
+    metrics = RunMetrics.from_json({**earlier, "frames": 6, "time": TIME})
+    assert metrics.source == source and metrics.frames == 6 and metrics.time == TimingRecord(**TIME)
+    assert (metrics.ate.rmse_cm if metrics.ate else None) == ate_cm and metrics.evaluation_complete == complete
+    assert metrics.loops is None  # written before loop closure
+
+
+def _closed_loop(frame: int, matched: tuple[int, ...]) -> ClosedLoop:
+    return ClosedLoop(frame, matched, MotionSize(0.025, 1.5), detect_s=0.04, correct_s=0.125, published_s=0.5)
+
+
+def test_loop_closure_s_outcome_round_trips_through_json() -> None:
+    tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1)
+    loops = LoopRecord.of(tally, [_closed_loop(40, (3,)), _closed_loop(90, (5, 7))])
+    metrics = RunMetrics("room", frames=100, loops=loops)
+    table = json.loads(json.dumps(metrics.to_json()))
+    assert table["loops"]["closed"][1]["matched_frames"] == [5, 7]
+    assert RunMetrics.from_json(table) == metrics
+    assert RunMetrics.from_json({**table, "loops": None}).loops is None
+    with pytest.raises(ValueError, match="expected a list"):
+        RunMetrics.from_json({**table, "loops": {**table["loops"], "closed": {"frame": 40}}})
+
+
+def test_a_loop_record_is_the_tally_and_each_closed_loop_in_cm_degrees_and_ms() -> None:
+    tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1,
+                      dropped_by_graph=1, searches=4, search_s=0.2)  # fmt: skip
+    loops = LoopRecord.of(tally, [_closed_loop(40, (3, 11))])
+    counts = {k: v for k, v in dataclasses.asdict(loops).items() if k not in ("closed", "search_ms")}
+    assert counts == {k: v for k, v in dataclasses.asdict(tally).items() if k != "search_s"}
+    assert loops.search_ms == pytest.approx(50.0)  # the mean per keyframe searched
+    assert LoopRecord.of(LoopTally(), []).search_ms is None
+    (row,) = loops.closed
+    assert row == ClosedLoopRow(40, [3, 11], correction_cm=2.5, correction_deg=1.5, detect_ms=40.0,
+                                correct_ms=125.0, published_ms=500.0)  # fmt: skip
+
+
+def test_the_run_description_keeps_what_it_records() -> None:
+    dataset = RunDescription("room", False, "3d", True, "replica", (64, 48), 0, 1)
+    assert dataset.to_json()["size"] == [64, 48] and RunDescription.from_json(dataset.to_json()) == dataset
+    live = RunDescription("record3d", True, "3d", True)
+    assert set(live.to_json()) == {"source", "live", "gaussians", "isotropic"}
+    assert RunDescription.from_json({"source": "room", "unknown": 1}) == RunDescription("room")
+
+
+def test_a_frame_row_has_one_cell_per_column() -> None:
+    seconds = {"tracking": 0.01, "densify": 0.002, "mapping": 0.03, "total": 0.042}
+    result = FrameResult(3, 0.1, torch.eye(4), seconds, 100, 5, 0.25, 0.9, warning="weak", age_s=0.05)
+    row = FrameRow.of(result)
+    assert len(row.cells()) == len(COLUMNS) == len(dataclasses.fields(FrameRow))
+    assert row.cells()[:3] == [3, "0.100000", "0.010000"] and row.cells()[-2:] == ["", "0.0500"]
