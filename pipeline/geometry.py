@@ -95,6 +95,13 @@ def constant_velocity(c2w_prev2: torch.Tensor, c2w_prev: torch.Tensor, fraction:
     return c2w_prev @ motion
 
 
+def motion_extent(motion: torch.Tensor) -> torch.Tensor:
+    """Of a rigid motion [4, 4]: [2] (the translation's length in its units, the rotation angle in
+    degrees), on its device: nothing is read back."""
+    cosine = ((torch.diagonal(motion[:3, :3]).sum() - 1) / 2).clamp(-1.0, 1.0)
+    return torch.stack([motion[:3, 3].norm(), torch.rad2deg(torch.arccos(cosine))])
+
+
 def motion_fraction(motion: torch.Tensor, fraction: float) -> torch.Tensor:
     """`fraction` of a rigid motion [4, 4]: its rotation angle about the same axis and its
     translation, each scaled (0: the identity, 1: the motion itself)."""

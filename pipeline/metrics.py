@@ -48,6 +48,34 @@ def absolute_trajectory_error(estimated_c2w: np.ndarray, reference_c2w: np.ndarr
     )
 
 
+LARGE_STEP_M = 0.03  # metres: a reference motion between consecutive frames beyond this is a large step
+
+
+@dataclass
+class StepError:
+    """The error of the estimated frame-to-frame motions over the reference's large steps: per
+    step, the translation of inv(reference step) @ estimated step (the relative pose error over
+    one frame)."""
+
+    steps: int  # consecutive frames whose reference motion is over `min_step_m`
+    mean_m: float  # 0 where there are none
+    median_m: float
+    max_m: float
+    min_step_m: float
+
+
+def step_errors(estimated_c2w: np.ndarray, reference_c2w: np.ndarray, min_step_m: float = LARGE_STEP_M) -> StepError:
+    """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4] (no alignment: a
+    relative motion does not depend on the world frame)."""
+    estimated_steps = np.linalg.inv(estimated_c2w[:-1]) @ estimated_c2w[1:]
+    reference_steps = np.linalg.inv(reference_c2w[:-1]) @ reference_c2w[1:]
+    large = np.linalg.norm(reference_steps[:, :3, 3], axis=1) > min_step_m
+    if not large.any():
+        return StepError(0, 0.0, 0.0, 0.0, min_step_m)
+    errors = np.linalg.norm((np.linalg.inv(reference_steps[large]) @ estimated_steps[large])[:, :3, 3], axis=1)
+    return StepError(int(large.sum()), float(errors.mean()), float(np.median(errors)), float(errors.max()), min_step_m)
+
+
 @dataclass
 class ViewQuality:
     psnr_db: float

@@ -141,6 +141,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
     t, runtime, ate, render, loops = metrics.time, metrics.runtime, metrics.ate, metrics.render, metrics.loops
     assert t is not None, "a finished run is timed"
     before_loops, closed = metrics.ate_as_tracked, loops.closed if loops else []
+    steps = metrics.large_steps
     process = metrics.mapping_process  # the process schedule: mapping's own times, per frame mapped
     before = metrics.render_before_final_iters
     return {
@@ -170,7 +171,10 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "depth_l1_cm": render.depth_l1_cm if render else None,
         "lost_frames": metrics.lost_frames,
         "unmapped_frames": metrics.unmapped_frames,
+        "large_steps": steps.steps if steps else None,
+        "large_step_error_cm": steps.mean_cm if steps and steps.steps else None,
         "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
+        "loops_detected": loops.detected if loops else None,
         "loops_accepted": loops.accepted if loops else None,
         "loops_rejected": loops.rejected if loops else None,
         "loops_closed": len(closed) if loops else None,
@@ -257,7 +261,9 @@ COLUMNS = [
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
-    ("ate_before_loops_cm", "{:.2f}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"), ("loops_closed", "{}"),
+    ("large_steps", "{}"), ("large_step_error_cm", "{:.2f}"),
+    ("ate_before_loops_cm", "{:.2f}"), ("loops_detected", "{}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"),
+    ("loops_closed", "{}"),
     ("loop_search_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
 ]  # fmt: skip
 

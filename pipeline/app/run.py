@@ -23,7 +23,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
-from pipeline.io.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StopRecord
+from pipeline.io.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StepRecord, StopRecord
 from pipeline.io.sources.datasets.base import Dataset
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.source import DatasetSource
@@ -175,7 +175,9 @@ def _finish(
     `mapping.final_iters`). OutputError where a file could not be written (a full disk)."""
     checkpoint = session.slam.checkpoint()
     session.saver.save_now(checkpoint)
-    metrics = session.metrics(report, _ate(session, dataset), checkpoint.mapping.loops)
+    poses = torch.stack(session.slam.poses).double().cpu().numpy()
+    metrics = session.metrics(report, _ate_of(poses, dataset), checkpoint.mapping.loops)
+    metrics = replace(metrics, large_steps=_steps_of(poses, dataset))
     if checkpoint.mapping.loops is not None and checkpoint.tracking.tracked_poses is not None:
         metrics = replace(metrics, ate_as_tracked=_ate_of(checkpoint.tracking.tracked_poses.double().numpy(), dataset))
     earlier = session.folder.read_metrics() if not session.log.results else None  # a resume that only evaluates
@@ -206,15 +208,29 @@ def _ate(session: Session, dataset: Dataset) -> AteRecord | None:
 
 def _ate_of(poses: np.ndarray, dataset: Dataset) -> AteRecord | None:
     """The ATE of `poses` [F, 4, 4] camera-to-world against the dataset's first F, where it has one for each."""
-    refs = dataset.refs[: len(poses)]
-    known = [r.c2w_gt for r in refs if r.c2w_gt is not None]
-    if len(known) != len(refs) or len(refs) < 2:
+    reference = _references(dataset, len(poses))
+    if reference is None:
         return None
     try:
-        return AteRecord.between(poses, np.stack(known))
+        return AteRecord.between(poses, reference)
     except (ValueError, np.linalg.LinAlgError) as exc:  # never lose metrics.json over it
         log.warning("ATE not computed: %s", exc)
         return None
+
+
+def _steps_of(poses: np.ndarray, dataset: Dataset) -> StepRecord | None:
+    """The error of `poses`' [F, 4, 4] frame-to-frame motions over the dataset's large steps,
+    where it has a reference pose for each of its first F frames."""
+    reference = _references(dataset, len(poses))
+    return None if reference is None else StepRecord.between(poses, reference)
+
+
+def _references(dataset: Dataset, frames: int) -> np.ndarray | None:
+    """The reference camera-to-world [F, 4, 4] of the dataset's first `frames`, where it has one
+    for each (and at least two)."""
+    refs = dataset.refs[:frames]
+    known = [r.c2w_gt for r in refs if r.c2w_gt is not None]
+    return np.stack(known) if len(known) == len(refs) >= 2 else None
 
 
 def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailure) -> None:

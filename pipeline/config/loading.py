@@ -201,6 +201,15 @@ def validate(config: Config) -> None:
             "tracking.align_max_residual_m and align_max_intensity_rms must be > 0",
         ),
         (config.tracking.align_recovery_iters >= 0, "tracking.align_recovery_iters must be >= 0"),
+        (
+            1 <= len(config.tracking.align_wide_iters) <= 7 and min(config.tracking.align_wide_iters, default=0) >= 1,
+            "tracking.align_wide_iters takes 1 to 7 iteration counts (one per pyramid level, coarse to fine), each >= 1",
+        ),
+        (
+            min(config.tracking.align_large_step_m, config.tracking.align_large_step_deg) > 0,
+            "tracking.align_large_step_m and align_large_step_deg must be > 0",
+        ),
+        (config.tracking.align_max_renders >= 1, "tracking.align_max_renders must be >= 1"),
         (config.tracking.relocalise_candidates >= 0, "tracking.relocalise_candidates must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),

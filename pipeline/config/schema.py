@@ -85,6 +85,17 @@ class TrackingConfig:
     align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
     align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
     align_recovery_iters: int = 30  # align: coarsest-level iterations of the one recovery attempt
+    align_wide_iters: tuple[int, ...] = (
+        20,
+        10,
+        6,
+        4,
+    )  # align: a large step's solve per level, coarse to fine (a level more: a wider basin)
+    align_large_step_m: float = (
+        0.03  # align: a solve that moves the camera further re-renders at its pose and aligns again (wide)
+    )
+    align_large_step_deg: float = 2.0  # align: likewise for its rotation, degrees
+    align_max_renders: int = 3  # align: renders per frame at most (1: one render, no realignment)
     align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)
 
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from pipeline.metrics import absolute_trajectory_error
+from pipeline.metrics import absolute_trajectory_error, step_errors
 from pipeline.slam.handoff import FrameResult
 
 if TYPE_CHECKING:  # loop_closure brings the alignment with it: not imported to read a metrics.json
@@ -43,6 +43,25 @@ class AteRecord:
         """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4]."""
         ate = absolute_trajectory_error(estimated, reference)
         return AteRecord(100 * ate.rmse_m, 100 * ate.mean_m, 100 * ate.median_m, 100 * ate.max_m, ate.frames)
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """The frame-to-frame motion's error over the reference's large steps (`metrics.step_errors`), centimetres."""
+
+    steps: int  # consecutive frames further apart than min_step_cm in the reference
+    mean_cm: float
+    median_cm: float
+    max_cm: float
+    min_step_cm: float
+
+    @staticmethod
+    def between(estimated: np.ndarray, reference: np.ndarray) -> StepRecord:
+        """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4]."""
+        error = step_errors(estimated, reference)
+        return StepRecord(
+            error.steps, 100 * error.mean_m, 100 * error.median_m, 100 * error.max_m, 100 * error.min_step_m
+        )
 
 
 @dataclass(frozen=True)
@@ -190,6 +209,7 @@ class RunMetrics:
     time: TimingRecord | None = None
     ate: AteRecord | None = None
     ate_as_tracked: AteRecord | None = None  # with loop closure: of the poses before its corrections
+    large_steps: StepRecord | None = None  # the motion's error over the reference's steps beyond 3 cm
     render: RenderRecord | None = None
     render_before_final_iters: RenderRecord | None = None  # before mapping.final_iters (None without it)
     evaluation: str | None = None  # "complete", or why not; None: live (no evaluation)

@@ -188,7 +188,7 @@ def verify(
     start = (invert_pose(old.c2w.double()) @ current.c2w.double()).to(sources[0].points.device)
     params = level_params(tracking, levels)
     state = align(sources, targets, params, config.verify_iters, start=start)
-    report = read_report(state.fit, sources[0].valid)
+    report = read_report(state, sources[0].valid)
     coverage = report.inliers / max(report.valid, 1)
     failure = report.failure(verification_limits(tracking, config))
     if not failure and coverage < config.min_coverage:

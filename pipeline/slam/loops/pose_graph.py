@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.config import LoopConfig
-from pipeline.geometry import invert_pose, skew
+from pipeline.geometry import invert_pose, motion_extent, skew
 
 F64 = torch.float64
 PRIOR_SIGMA = 1e-6  # radians and metres: the first node's prior (the result is re-anchored to it exactly)
@@ -113,8 +113,8 @@ def fixed_information(sigma_m: float, sigma_deg: float) -> torch.Tensor:
 
 def motion_size(motion: torch.Tensor) -> MotionSize:
     """Of a rigid motion [4, 4]."""
-    cosine = ((torch.diagonal(motion[:3, :3]).sum() - 1) / 2).clamp(-1.0, 1.0)
-    return MotionSize(float(motion[:3, 3].norm()), float(torch.rad2deg(torch.arccos(cosine))))
+    translation_m, rotation_deg = motion_extent(motion).tolist()
+    return MotionSize(translation_m, rotation_deg)
 
 
 def edge_residual(c2w: torch.Tensor, edge: Edge) -> MotionSize:

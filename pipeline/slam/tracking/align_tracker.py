@@ -1,25 +1,25 @@
-"""The `align` tracking method: render the map once at the predicted pose (no backward pass),
-align the new frame to that render densely (`rgbd_alignment`), judge the solve from its own
-statistics, and try once more before the frame is declared lost."""
+"""The `align` tracking method: render the map at the predicted pose (no backward pass), align
+the new frame to that render densely (`rgbd_alignment`), judge the solve from its own
+statistics, and try once more before the frame is declared lost; after a large step, render
+again at the aligned pose and align once more (`AlignTracker`)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import torch
 
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.geometry import invert_pose, motion_extent, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
 from pipeline.slam.cuda_graphs import GraphCache
 from pipeline.slam.tracking.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
     AlignIteration,
     AlignParams,
-    Linearisation,
     LmState,
     SourcePoints,
     TargetMaps,
@@ -30,6 +30,7 @@ from pipeline.slam.tracking.rgbd_alignment import (
 )
 
 MIN_PIXELS = 64  # fewer valid-depth pixels, or fewer inliers, and no pose is estimated
+WIDE_MIN_COARSE = 12  # pixels: the wide schedule's coarsest level keeps at least this shorter side
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,12 @@ class SolveReport:
     rms_m: float  # RMS point-to-plane residual of the inliers
     rms_intensity: float  # RMS intensity residual of the inliers
     conditioning: float  # smallest / largest eigenvalue of the Jacobi-scaled normal equations
+    moved_m: float = 0.0  # how far the solve moved the camera from the pose rendered at, metres
+    moved_deg: float = 0.0  # and turned it, degrees
+
+    def large(self, config: TrackingConfig) -> bool:
+        """Whether the solve moved the camera far (`align_large_step_m`, `_deg`) from the render's pose."""
+        return self.moved_m > config.align_large_step_m or self.moved_deg > config.align_large_step_deg
 
     def failure(self, config: TrackingConfig) -> str:
         """Empty when the solve looks sound, else the first reason it does not."""
@@ -85,15 +92,17 @@ def conditioning(hessian: torch.Tensor) -> float:
     return float(eigenvalues[0] / eigenvalues[-1])
 
 
-def read_report(fit: Linearisation, valid: torch.Tensor) -> SolveReport:
-    """One device-to-host copy of the solve's statistics; `valid` [M] the frame's valid depth."""
+def read_report(state: LmState, valid: torch.Tensor) -> SolveReport:
+    """One device-to-host copy of a solve's statistics; `valid` [M] the frame's valid depth."""
+    fit = state.fit
     counts = torch.stack([valid.sum(), fit.associated, fit.inliers]).double()
     squares = torch.stack([fit.geometric_sq, fit.photometric_sq]).double()
-    packed = torch.cat([counts, squares, fit.hessian.reshape(-1)]).cpu()
+    packed = torch.cat([counts, squares, motion_extent(state.pose).double(), fit.hessian.reshape(-1)]).cpu()
     valid_n, associated, inliers = (int(x) for x in packed[:3])
     rms_m, rms_intensity = (float(x) for x in (packed[3:5] / max(inliers, 1)).sqrt())
-    hessian = packed[5:].reshape(6, 6)
-    return SolveReport(valid_n, associated, inliers, rms_m, rms_intensity, conditioning(hessian))
+    moved_m, moved_deg = (float(x) for x in packed[5:7])
+    hessian = packed[7:].reshape(6, 6)
+    return SolveReport(valid_n, associated, inliers, rms_m, rms_intensity, conditioning(hessian), moved_m, moved_deg)
 
 
 def level_params(config: TrackingConfig, levels: int) -> list[AlignParams]:
@@ -132,8 +141,29 @@ def prepare_rgbd(
     return sources, targets
 
 
+@dataclass(frozen=True)
+class Pass:
+    """One render and the solve against it."""
+
+    state: LmState
+    report: SolveReport
+    valid: torch.Tensor  # [H x W] the frame's valid depth
+    c2w_render: torch.Tensor  # [4, 4] the pose rendered at
+    failure: str
+
+
 class AlignTracker:
-    """One frame's pose by dense alignment to a render of the frozen map at `c2w_init`."""
+    """One frame's pose by dense alignment to renders of the frozen map.
+
+    The first render is at the prediction `c2w_init`. A solve that moves the camera far from
+    the pose it rendered at (`align_large_step_m` or `_deg`) was aligned to a view of the map
+    from elsewhere: what the frame sees of a surface depends on where from (occlusions, the
+    splats' blending, the part of the map in view), so the map is rendered again at the
+    aligned pose and the frame aligned again from there, with the wide schedule
+    (`align_wide_iters`: one pyramid level more and more coarse iterations, a wider basin),
+    at most `align_max_renders` renders in all. A frame whose last solve still moved that far
+    has stopped short of the map's pose for it: it fails (the tracking verdict flags it lost).
+    A frame whose step the caller expects to be large (`wide`) is solved wide from the start."""
 
     def __init__(
         self,
@@ -146,29 +176,59 @@ class AlignTracker:
     ) -> None:
         """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py)."""
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
+        self.capture = capture
         self.params = level_params(config, len(config.align_iters))
         self.recovery_schedule = (config.align_recovery_iters, *config.align_iters[1:])
-        solve = partial(self.solve_images, schedule=config.align_iters)
-        recover = partial(self.solve_images, schedule=self.recovery_schedule)
-        self._solve: Callable[..., tuple[LmState, torch.Tensor]] = GraphCache(solve) if capture else solve
-        self._recover: Callable[..., tuple[LmState, torch.Tensor]] = GraphCache(recover) if capture else recover
+        self._solvers: dict[tuple[int, ...], Callable[..., tuple[LmState, torch.Tensor]]] = {}
 
-    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> AlignResult:
+    def __call__(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, wide: bool = False
+    ) -> AlignResult:
         check_pyramid_fits(len(self.params), frame.height, frame.width)
-        rendered = self._render(gaussians, frame, c2w_init)
+        config = self.config
+        wide_schedule = fitting_schedule(config.align_wide_iters, frame.height, frame.width)
+        attempt = self._pass(gaussians, frame, c2w_init, wide_schedule if wide else config.align_iters, wide_schedule)
+        renders = 1
+        while not attempt.failure and attempt.report.large(config):
+            if renders == config.align_max_renders:
+                if renders > 1:  # one render: as before this check, its solve is all there is
+                    attempt = replace(attempt, failure=stopped_short(attempt.report, renders))
+                break
+            attempt = self._pass(gaussians, frame, self._c2w(attempt), wide_schedule, wide_schedule)
+            renders += 1
+        return self._result(attempt)
+
+    def _pass(
+        self,
+        gaussians: Gaussians,
+        frame: DeviceFrame,
+        c2w_render: torch.Tensor,
+        schedule: tuple[int, ...],
+        wide_schedule: tuple[int, ...],
+    ) -> Pass:
+        """Render at `c2w_render`, solve over `schedule`; a failed solve is tried once more over
+        `wide_schedule` with `align_recovery_iters` at its coarsest level (a wider basin)."""
+        rendered = self._render(gaussians, frame, c2w_render)
         images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
-        state, valid = self._solve(*images)
-        report = read_report(state.fit, valid)
+        state, valid = self._solver(schedule)(*images)
+        report = read_report(state, valid)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
-            # One recovery attempt: more coarse-level iterations widen the basin of convergence.
-            retry, _ = self._recover(*images)
-            retry_failure = read_report(retry.fit, valid).failure(self.config)
+            retry, _ = self._solver((self.config.align_recovery_iters, *wide_schedule[1:]))(*images)
+            retry_report = read_report(retry, valid)
+            retry_failure = retry_report.failure(self.config)
             if retry_failure:
                 failure = f"{failure}; after a recovery attempt: {retry_failure}"
             else:
-                state, failure = retry, ""
-        return self._result(state, c2w_init, valid, failure)
+                state, report, failure = retry, retry_report, ""
+        return Pass(state, report, valid, c2w_render, failure)
+
+    def _solver(self, schedule: tuple[int, ...]) -> Callable[..., tuple[LmState, torch.Tensor]]:
+        """`solve_images` over `schedule`, made (and with `capture`, graph-recorded) once per schedule."""
+        if schedule not in self._solvers:
+            solve = partial(self.solve_images, schedule=schedule)
+            self._solvers[schedule] = GraphCache(solve) if self.capture else solve
+        return self._solvers[schedule]
 
     def solve_images(
         self,
@@ -181,46 +241,63 @@ class AlignTracker:
         schedule: tuple[int, ...],
     ) -> tuple[LmState, torch.Tensor]:
         """The frame (colour [H, W, 3], depth [H, W] metres, intrinsics [3, 3]) aligned to the
-        render (colour, depth, silhouette at the frame's size) -> (the solve's last state, the
-        frame's valid-depth mask [H x W] at full size). Tensors in and out only, so that it can
-        be recorded as a CUDA graph."""
-        sources, targets = self.prepare_images(color, depth, intrinsics, render_color, render_depth, silhouette)
+        render (colour, depth, silhouette at the frame's size) over `schedule` (one pyramid
+        level per entry) -> (the solve's last state, the frame's valid-depth mask [H x W] at
+        full size). Tensors in and out only, so that it can be recorded as a CUDA graph."""
+        images = (color, depth, intrinsics, render_color, render_depth, silhouette)
+        sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
         return self.solve(sources, targets, schedule), sources[0].valid
 
-    def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> RenderOutput:
-        camera = Camera(invert_pose(c2w_init), frame.intrinsics, frame.width, frame.height, self.near, self.far)
+    def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor) -> RenderOutput:
+        camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, self.near, self.far)
         with torch.no_grad():
             return self.renderer(gaussians, camera)
 
     def prepare(self, frame: DeviceFrame, rendered: RenderOutput) -> tuple[list[SourcePoints], list[TargetMaps]]:
-        """The frame's pyramid as points in its own camera and the render's as maps, finest first."""
-        return self.prepare_images(
-            frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette
-        )
-
-    def prepare_images(
-        self,
-        color: torch.Tensor,
-        depth: torch.Tensor,
-        intrinsics: torch.Tensor,
-        render_color: torch.Tensor,
-        render_depth: torch.Tensor,
-        silhouette: torch.Tensor,
-    ) -> tuple[list[SourcePoints], list[TargetMaps]]:
-        """`prepare` on the images (`prepare_rgbd`)."""
-        images = (color, depth, intrinsics, render_color, render_depth, silhouette)
+        """The frame's pyramid as points in its own camera and the render's as maps, finest first
+        (`align_iters`' levels)."""
+        images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
         return prepare_rgbd(*images, len(self.params), self.config.align_min_silhouette)
 
     def solve(
         self, sources: list[SourcePoints], targets: list[TargetMaps], schedule: tuple[int, ...] | None = None
     ) -> LmState:
-        """The coarse-to-fine solve (`align_iters`, or `schedule`) from the render's pose."""
-        return align(sources, targets, self.params, schedule or self.config.align_iters, self.iteration)
+        """The coarse-to-fine solve (`align_iters`, or `schedule`: as many levels as the pyramids
+        hold) from the render's pose."""
+        schedule = schedule or self.config.align_iters
+        params = level_params(self.config, len(schedule))
+        return align(sources, targets, params, schedule, self.iteration)
 
-    def _result(self, state: LmState, c2w_init: torch.Tensor, valid: torch.Tensor, failure: str) -> AlignResult:
-        """The camera-to-world of the solve, re-orthonormalised (the prediction if it is not finite)."""
-        c2w = c2w_init @ state.pose.to(c2w_init.dtype)  # the motion maps this camera into the render's
+    @staticmethod
+    def _c2w(attempt: Pass) -> torch.Tensor:
+        """The camera-to-world of a pass's solve, re-orthonormalised (the pose rendered at if it
+        is not finite)."""
+        c2w_render = attempt.c2w_render
+        c2w = c2w_render @ attempt.state.pose.to(c2w_render.dtype)  # the motion maps this camera into the render's
         c2w = pose_matrix(rotmat_to_quat(c2w[:3, :3]), c2w[:3, 3])  # exactly rigid: no drift in later products
-        c2w = torch.where(torch.isfinite(c2w).all(), c2w, c2w_init)
-        coverage = state.fit.inliers / valid.sum().clamp(min=1)
-        return AlignResult(c2w, state.fit.geometric_sq, coverage, failure, state.fit.hessian, state.pose)
+        return torch.where(torch.isfinite(c2w).all(), c2w, c2w_render)
+
+    def _result(self, attempt: Pass) -> AlignResult:
+        fit = attempt.state.fit
+        coverage = fit.inliers / attempt.valid.sum().clamp(min=1)
+        return AlignResult(
+            self._c2w(attempt), fit.geometric_sq, coverage, attempt.failure, fit.hessian, attempt.state.pose
+        )
+
+
+def fitting_schedule(schedule: tuple[int, ...], height: int, width: int) -> tuple[int, ...]:
+    """`schedule` (iterations per level, coarse to fine) for a `height` x `width` frame: levels
+    whose shorter side would fall under WIDE_MIN_COARSE pixels go, the next level taking over
+    the coarsest's iterations (a coarse level of a few dozen pixels aligns to anything)."""
+    levels = len(schedule)
+    while levels > 1 and min(height, width) >> (levels - 1) < WIDE_MIN_COARSE:
+        levels -= 1
+    return schedule if levels == len(schedule) else (schedule[0], *schedule[len(schedule) - levels + 1 :])
+
+
+def stopped_short(report: SolveReport, renders: int) -> str:
+    """Why a frame whose last solve still moved far fails."""
+    return (
+        f"the alignment stopped short: after {renders} renders its last solve still moved"
+        f" {100 * report.moved_m:.1f} cm, {report.moved_deg:.1f} deg"
+    )
