@@ -213,6 +213,15 @@ def validate(config: Config) -> None:
         (config.tracking.relocalise_candidates >= 0, "tracking.relocalise_candidates must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),
+        (
+            config.mapping.adjust_window == 0 or config.mapping.adjust_window >= 2,
+            "mapping.adjust_window must be 0 or >= 2",
+        ),
+        (
+            config.mapping.adjust_iters >= 1 and config.mapping.adjust_pose_lr > 0,
+            "mapping.adjust_iters must be >= 1 and mapping.adjust_pose_lr > 0",
+        ),
+        (config.mapping.adjust_converged >= 0, "mapping.adjust_converged must be >= 0"),
         (config.slam.max_lead >= 0, "slam.max_lead must be >= 0"),
         (config.mapping.views_per_step >= 1, "mapping.views_per_step must be >= 1"),
         (config.keyframes.max_kept == 0 or config.keyframes.max_kept >= 2, "keyframes.max_kept must be 0 or >= 2"),

@@ -121,6 +121,12 @@ class MappingConfig:
     refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
+    adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
+    adjust_iters: int = 200  # an adjustment's view renders at most
+    adjust_pose_lr: float = 2e-3  # Adam step of an adjusted keyframe's twist (radians, metres)
+    adjust_converged: float = (
+        5e-4  # an adjustment stops once a round (a render per keyframe) moved no twist component further
+    )
 
 
 @dataclass(frozen=True)

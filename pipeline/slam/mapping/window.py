@@ -65,6 +65,9 @@ class WindowPlan:
     pose_lr: float = 0.0  # > 0: each view's pose is optimised jointly, a twist per view, Adam at this step
     fixed: frozenset[int] = frozenset()  # positions in the views whose poses stay (the gauge: the first keyframe)
     on_step: Callable[[], None] | None = None  # called before each step (a mapping process's sign of life)
+    converged: float = (
+        0.0  # > 0 (with pose_lr): stop once a round of len(views) renders moved no twist component further
+    )
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,8 @@ def optimise_window(
     before the steps whose renders include an index of `config.prune_at` (Gaussians larger than
     `prune_scale_factor` x `scene_radius` metres go too). With `plan.pose_lr` the views' poses
     are optimised with the Gaussians (the pose gradient through the view matrix, as in
-    tracking), each as a twist applied to its camera-to-world: T = exp(twist) @ c2w."""
+    tracking), each as a twist in its camera's own frame: T = c2w @ exp(twist) (rotation about the
+    camera's centre: a rotation about the world origin would move a far camera's centre with it)."""
     config = settings.config
     params = as_leaves(gaussians)
     rates = _learning_rates(config)
@@ -112,11 +116,16 @@ def optimise_window(
     poses = _ViewPoses(views, intrinsics, settings, plan)
     per_step, done = config.views_per_step, 0
     kept: torch.Tensor | None = None
+    round_first, round_twists = 0, poses.snapshot()  # a round: a render per view, for `plan.converged`
     for first in range(0, plan.iters, per_step):
         if plan.on_step is not None:
             plan.on_step()
         if plan.should_stop is not None and plan.should_stop():
             break
+        if plan.converged > 0 and first - round_first >= len(views):
+            if poses.moved_since(round_twists) <= plan.converged:
+                break
+            round_first, round_twists = first, poses.snapshot()
         renders = range(first, min(first + per_step, plan.iters))
         if any(i in config.prune_at for i in renders):
             with torch.no_grad():
@@ -138,7 +147,10 @@ def optimise_window(
 
 class _ViewPoses:
     """The views' cameras in a mapping pass: fixed (SplaTAM), or each moved by a twist that Adam
-    optimises with the map (float64: the exponential map cancels badly in float32)."""
+    optimises with the map (float64: the exponential map cancels badly in float32). Each view's
+    twist is a tensor of its own, so that a step moves only the views it rendered (Adam passes
+    over a parameter without a gradient; one tensor for all would keep moving the others on
+    their momentum)."""
 
     def __init__(
         self, views: list[Keyframe], intrinsics: torch.Tensor, settings: MapSettings, plan: WindowPlan
@@ -147,24 +159,34 @@ class _ViewPoses:
         self._frame = (intrinsics, width, height, settings.near, settings.far)
         self._c2w = [v.c2w for v in views]
         self._fixed = [Camera(invert_pose(c2w), *self._frame) for c2w in self._c2w]
-        self._twists: torch.Tensor | None = None
+        self._twists: dict[int, torch.Tensor] = {}  # position -> [6] (rotation, translation), the moving views'
         self._optimizer: torch.optim.Adam | None = None
-        self._moving = [p for p in range(len(views)) if p not in plan.fixed]
-        if plan.pose_lr > 0 and self._moving:
-            self._twists = torch.zeros(len(views), 6, dtype=torch.float64, device=intrinsics.device, requires_grad=True)
-            self._optimizer = torch.optim.Adam([self._twists], lr=plan.pose_lr)
+        if plan.pose_lr > 0:
+            device = intrinsics.device
+            moving = [p for p in range(len(views)) if p not in plan.fixed]
+            self._twists = {p: torch.zeros(6, dtype=torch.float64, device=device, requires_grad=True) for p in moving}
+        if self._twists:
+            self._optimizer = torch.optim.Adam(list(self._twists.values()), lr=plan.pose_lr)
 
     def _moved(self, position: int) -> torch.Tensor:
-        assert self._twists is not None
         c2w = self._c2w[position]
-        if position not in self._moving:
+        if position not in self._twists:
             return c2w
-        return (se3_exp(self._twists[position]) @ c2w.double()).to(c2w.dtype)
+        return (c2w.double() @ se3_exp(self._twists[position])).to(c2w.dtype)
 
     def cameras(self, picks: list[int]) -> list[Camera]:
-        if self._twists is None:
+        if not self._twists:
             return [self._fixed[p] for p in picks]
         return [Camera(invert_pose(self._moved(p)), *self._frame) for p in picks]
+
+    def snapshot(self) -> torch.Tensor | None:
+        """A copy of the moving views' twists [V', 6] now (None: the poses are fixed)."""
+        return torch.stack([t.detach() for t in self._twists.values()]) if self._twists else None
+
+    def moved_since(self, twists: torch.Tensor | None) -> float:
+        """The largest change of a twist component (radians or metres) since `twists` (one host read)."""
+        now = self.snapshot()
+        return 0.0 if now is None or twists is None else float((now - twists).abs().max())
 
     def zero_grad(self) -> None:
         if self._optimizer is not None:
@@ -175,10 +197,9 @@ class _ViewPoses:
             self._optimizer.step()
 
     def c2w(self) -> list[torch.Tensor]:
-        if self._twists is None:
-            return list(self._c2w)
+        """Each view's camera-to-world now: a view that does not move keeps its very tensor."""
         with torch.no_grad():
-            return [self._moved(p).detach() for p in range(len(self._c2w))]
+            return [self._moved(p).detach() if p in self._twists else c2w for p, c2w in enumerate(self._c2w)]
 
 
 def _views_loss(
