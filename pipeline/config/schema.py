@@ -39,12 +39,8 @@ class DatasetConfig:
     depth_topic: str = ""  # a bag's depth images (16UC1 millimetres, 32FC1 metres); empty: the only one
     camera_info_topic: str = ""  # a bag's sensor_msgs/CameraInfo; empty: the colour topic's, or the only one
     pose_topic: str = ""  # a bag's poses (PoseStamped, PoseWithCovarianceStamped, Odometry; /tf: set pose_frames); empty: the only one, if any
-    pose_frames: tuple[
-        str, ...
-    ] = ()  # /tf's world and camera frames, e.g. map,camera_color_optical_frame; empty: no /tf pose
-    pose_use: PoseUse = (
-        "groundtruth"  # a bag's poses: the reference for the ATE, the starting guess of tracking, or ignored
-    )
+    pose_frames: tuple[str, ...] = ()  # /tf's world and camera frames, e.g. map,camera_optical; empty: no /tf pose
+    pose_use: PoseUse = "groundtruth"  # a bag's poses: the reference for the ATE, tracking's starting guess, or ignored
 
 
 # The embedded default scene (width, height, frames): full Replica size on a GPU, a small one a

@@ -18,7 +18,7 @@ from pipeline.io.sources.cameras import CAMERAS
 if TYPE_CHECKING:
     from pipeline.app.serve import ServeResult
 
-HELP = "live daemon: reconstruct from a phone's stream until Ctrl-C"
+HELP = "live daemon: reconstruct from a phone or a RealSense camera until Ctrl-C"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -46,14 +46,15 @@ class TumFolder:
     intrinsics: np.ndarray  # [3, 3]
 
     @staticmethod
-    def read(folder: Path) -> TumFolder:
+    def read(folder: Path, intrinsics: np.ndarray | None = None) -> TumFolder:
+        """The folder; `intrinsics` [3, 3] where it has no intrinsics.txt."""
         color_t, color_names = read_file_list(folder / "rgb.txt")
         depth_t, depth_names = read_file_list(folder / "depth.txt")
         pose_t, rows = read_tum_poses(folder / "groundtruth.txt")
         colors = [cv2.cvtColor(cv2.imread(str(folder / name)), cv2.COLOR_BGR2RGB) for name in color_names]
         depths = [cv2.imread(str(folder / name), cv2.IMREAD_UNCHANGED) for name in depth_names]
         poses = [pose_from_tum_row(row) for row in rows]
-        intrinsics = read_intrinsics_file(folder)
+        intrinsics = read_intrinsics_file(folder) if intrinsics is None else intrinsics
         assert intrinsics is not None, "a synthetic TUM folder has intrinsics.txt"
         return TumFolder(color_t, colors, depth_t, depths, pose_t, poses, intrinsics)
 

@@ -31,7 +31,7 @@ def detect_format(path: Path) -> str:
 def open_dataset(config: DatasetConfig) -> Dataset:
     """Open the dataset that `config.path` names, in the layout `config.format` (or detected)."""
     path = Path(config.path)
-    layout = config.format
+    layout: str = config.format
     if layout == "auto" and path.is_file():
         layout = detect_format(path)
     elif layout != "rosbag":
@@ -41,6 +41,7 @@ def open_dataset(config: DatasetConfig) -> Dataset:
             raise UserError(f"cannot read the dataset folder {path}: permission denied")
         layout = detect_format(path) if layout == "auto" else layout
     explicit = intrinsics_matrix(*config.intrinsics) if config.intrinsics else None
+    dataset: Dataset
     if layout == "rosbag":
         from pipeline.io.sources.datasets.rosbag import open_bag  # rosbags: the 'rosbag' extra
 

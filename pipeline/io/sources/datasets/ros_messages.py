@@ -27,7 +27,11 @@ POSE_TYPES = (
 TF = "tf2_msgs/msg/TFMessage"
 
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3}
-DEPTH_ENCODINGS = {"16UC1": np.dtype(np.uint16), "mono16": np.dtype(np.uint16), "32FC1": np.dtype(np.float32)}
+DEPTH_ENCODINGS: dict[str, np.dtype[Any]] = {
+    "16UC1": np.dtype(np.uint16),
+    "mono16": np.dtype(np.uint16),
+    "32FC1": np.dtype(np.float32),
+}
 MILLIMETRE = 0.001  # metres per unit of 16-bit depth (REP 118)
 COMPRESSED_DEPTH_HEADER = 12  # compressed_depth_image_transport's header before the PNG: format, two floats
 
@@ -58,8 +62,8 @@ def _pixels(message: Any, dtype: np.dtype[Any], channels: int) -> np.ndarray:
     if width == 0 or height == 0 or step < row or len(data) < step * height:
         raise DataError(f"{width}x{height} {message.encoding} image of {len(data)} bytes (row step {step})")
     rows = data[: step * height].reshape(height, step)[:, :row]
-    order = ">" if message.is_bigendian else "<"
-    return np.ascontiguousarray(rows).view(dtype.newbyteorder(order)).astype(dtype).reshape(height, width, channels)
+    stored = dtype.newbyteorder(">" if message.is_bigendian else "<")
+    return np.ascontiguousarray(rows).view(stored).astype(dtype).reshape(height, width, channels)
 
 
 def color_array(message: Any, mimetype: str) -> np.ndarray:
@@ -126,11 +130,11 @@ def pose_matrix(message: Any) -> np.ndarray:
     return transform_matrix(pose.position, pose.orientation)
 
 
-def without_realsense_suffix(rawdata: bytes | memoryview) -> tuple[bytes | memoryview, float]:
+def without_realsense_suffix(rawdata: bytes) -> tuple[bytes, float]:
     """The RealSense SDK writes its ROS 1 Image messages with the frame's depth units (float32)
     after the standard fields (header.frame_id "1" says so): -> (the standard message, those
     units). Only for a message that standard deserialisation found too long."""
     if len(rawdata) < 4:
         raise DataError("an image message shorter than its depth units")
-    (units,) = struct.unpack("<f", bytes(rawdata[-4:]))
+    (units,) = struct.unpack("<f", rawdata[-4:])
     return rawdata[:-4], float(units)

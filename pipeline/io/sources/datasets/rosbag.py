@@ -113,7 +113,7 @@ class BagReader:
     def _connections(self, topics: Collection[str]) -> list[Connection]:
         return [c for c in self.reader().connections if c.topic in topics]
 
-    def _deserialize(self, connection: Connection, rawdata: bytes | memoryview) -> tuple[Any, float]:
+    def _deserialize(self, connection: Connection, rawdata: bytes) -> tuple[Any, float]:
         """-> (the message, the depth units the RealSense SDK writes after its ROS 1 images, or 0)."""
         reader = self.reader()
         try:
@@ -141,14 +141,14 @@ class BagDataset(Dataset):
     """A bag's frames: `refs` as every dataset's, decoded from the bag's messages."""
 
     bag: BagReader = field(compare=False)
-    frames: dict[float, BagFrame] = field(compare=False)  # by the colour stamp of each ref
+    messages: dict[float, BagFrame] = field(compare=False)  # each ref's, by its colour stamp
     depth_units: float = ros_messages.MILLIMETRE  # metres per unit of 16-bit depth (an image may carry its own)
     alignment: realsense_bag.DepthToColor | None = None  # a RealSense recording's depth -> colour
 
     def decode(self, ref: FrameRef) -> Frame:
         """The frame `ref` at the working size; DataError naming the message for one that cannot
         be read, of another size than the first, or (the first) without any valid depth."""
-        frame = self.frames[ref.timestamp]
+        frame = self.messages[ref.timestamp]
         color = self._read(frame.color, _color)
         depth = self._read(frame.depth, self._depth)
         width, height = self.size
