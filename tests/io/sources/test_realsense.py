@@ -175,7 +175,7 @@ def test_a_camera_lost_mid_session_saves_the_run_and_exits_1(
     fake_camera: list[FakeCamera], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     argv = ["run", "realsense:", "--output", str(tmp_path), "--name", "live", "-q", "--set", "live.status_port=0",
-            "--set", "live.record=true", "--device", "cpu"]  # fmt: skip
+            "--set", "live.record=true", "--device", "cpu", "--set", "live.width=32", "--set", "live.height=24"]  # fmt: skip
     assert main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == (

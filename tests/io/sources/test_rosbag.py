@@ -4,14 +4,18 @@ each written from the TUM folder, read as that folder reads; bad bags are one li
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 from bag_writers import BagWriter, TumFolder, write_realsense_bag, write_tum_bag
 
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
+from pipeline.errors import DataError
 from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.sources.datasets import ros_messages
 from pipeline.io.sources.datasets.loader import open_dataset
 
 TOPICS = {  # what each bag names by settings (the rest is found)
@@ -20,6 +24,7 @@ TOPICS = {  # what each bag names by settings (the rest is found)
     "file.mcap": {"pose_frames": ("world", "camera_color_optical_frame")},
     "realsense.bag": {},
 }
+FIRST_FRAMES = ["--set", "dataset.end=4"]  # the end-to-end runs: enough frames to track, few to keep the suite short
 DEPTH_TOLERANCE_M = {"ros1.bag": 0.0005, "ros2": 0.0, "file.mcap": 0.0, "realsense.bag": 1e-6}  # 16UC1 rounds to mm
 
 
@@ -90,7 +95,9 @@ def test_poses_as_the_starting_guess_of_tracking(bags: dict[str, Path], tum_seq:
 @pytest.fixture(scope="session")
 def tum_run(tum_seq: Path, tmp_path_factory: pytest.TempPathFactory) -> np.ndarray:
     out = tmp_path_factory.mktemp("runs")
-    assert main(["run", str(tum_seq), "--preset", "tiny", "--output", str(out), "--name", "tum", "-q"]) == 0
+    assert (
+        main(["run", str(tum_seq), "--preset", "tiny", "--output", str(out), "--name", "tum", "-q", *FIRST_FRAMES]) == 0
+    )
     return read_tum_trajectory(out / "tum" / "trajectory.txt")[1]
 
 
@@ -100,7 +107,19 @@ def test_a_bag_runs_end_to_end_as_its_tum_folder(
     name: str, bags: dict[str, Path], tum_run: np.ndarray, tmp_path: Path
 ) -> None:
     settings = [f"--set=dataset.pose_frames={','.join(v)}" for k, v in TOPICS[name].items()]
-    argv = ["run", str(bags[name]), "--preset", "tiny", "--output", str(tmp_path), "--name", "bag", "-q", *settings]
+    argv = [
+        "run",
+        str(bags[name]),
+        "--preset",
+        "tiny",
+        "--output",
+        str(tmp_path),
+        "--name",
+        "bag",
+        "-q",
+        *settings,
+        *FIRST_FRAMES,
+    ]
     assert main(argv) == 0
     poses = read_tum_trajectory(tmp_path / "bag" / "trajectory.txt")[1]
     assert poses.shape == tum_run.shape  # the same frames
@@ -166,7 +185,8 @@ def test_a_named_topic_that_is_absent_or_ambiguous_topics_are_one_line(
     line = _fails(_run(path, tmp_path), capsys)
     assert "has 2 colour image topics (/camera/color/image_raw, /camera2/color/image_raw)" in line
     assert "--set dataset.color_topic=TOPIC" in line
-    assert main([*_run(path, tmp_path, "dataset.color_topic=/camera/color/image_raw"), "--name", "named"]) == 0
+    named = open_dataset(_config(path, color_topic="/camera/color/image_raw"))
+    assert len(named) == len(folder.colors)
 
 
 def test_depth_of_another_size_than_colour_is_one_line(
@@ -200,3 +220,15 @@ def test_a_truncated_bag_is_one_line(
     cut.write_bytes(data[: len(data) * 2 // 3])
     line = _fails(_run(cut, tmp_path, *(f"dataset.{k}={','.join(v)}" for k, v in TOPICS[name].items())), capsys)
     assert f"cannot open the bag {cut} (truncated or corrupt?)" in line
+
+
+def test_compressed_depth_is_read_as_compressed_depth_image_transport_writes_it() -> None:
+    """A `16UC1; compressedDepth png` CompressedImage: a 12-byte header, then a 16-bit PNG of millimetres."""
+    millimetres = np.array([[0, 1000], [1500, 65535]], dtype=np.uint16)
+    png = cv2.imencode(".png", millimetres)[1].reshape(-1)
+    message = SimpleNamespace(format="16UC1; compressedDepth png", data=np.concatenate([np.zeros(12, np.uint8), png]))
+    depth = ros_messages.depth_array(message, ros_messages.COMPRESSED)
+    assert np.array_equal(depth, millimetres.astype(np.float32) * np.float32(0.001))
+    message.format = "32FC1; compressedDepth rvl"
+    with pytest.raises(DataError, match="unknown compressed depth format '32FC1; compressedDepth rvl'"):
+        ros_messages.depth_array(message, ros_messages.COMPRESSED)
