@@ -19,7 +19,6 @@ from typing import Any
 
 import gsplat
 import torch
-from gsplat.cuda._wrapper import fully_fused_projection, isect_offset_encode, rasterize_to_pixels
 
 from pipeline.render.intersections import TileGrid, TileIntersections, intersect_tiles, phantom_tile_mask
 from pipeline.render.types import Camera, Gaussians, RenderOutput
@@ -97,6 +96,8 @@ def render_gsplat_3d_capacity(
     The same kernels as `gsplat.rasterization` (classic, unpacked, "RGB+ED") on the same
     inputs, so the images equal its images while the intersections fit; the returned
     intersections say whether they did (`overflowed()`, read when convenient)."""
+    from gsplat.cuda._wrapper import fully_fused_projection, isect_offset_encode, rasterize_to_pixels
+
     first = cameras[0]
     opacities = torch.sigmoid(gaussians.opacity_logits)
     radii, means2d, depths, conics, _ = fully_fused_projection(

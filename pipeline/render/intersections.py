@@ -114,7 +114,9 @@ def intersect_tiles(
     tile_x = first_flat[owner, 0] + local % across
     tile_y = first_flat[owner, 1] + local // across
     image = torch.div(owner, n, rounding_mode="floor")
-    depth_bits = depths.detach().reshape(-1).view(torch.int32).long()[owner] & 0xFFFFFFFF
+    depth_bits = (
+        depths.detach().float().reshape(-1).view(torch.int32).long()[owner] & 0xFFFFFFFF
+    )  # float32's, as gsplat's
     keys = (image << (32 + grid.tile_bits)) | ((tile_y * grid.tiles_x + tile_x) << 32) | depth_bits
     count = ends[-1] if ends.numel() else torch.zeros((), dtype=torch.long, device=depths.device)
     padded = entry >= count
