@@ -200,7 +200,7 @@ def open_bag(path: Path, intrinsics: np.ndarray | None, config: DatasetConfig) -
     if not triples:
         with_pose = " and a pose" if reference else ""
         raise DataError(f"{path}: no colour frame of {topics.color} has depth{with_pose} within {MAX_DT} s")
-    prior = config.pose_use == "initial_guess" and pose_t is not None
+    prior = config.pose_use == "initial_guess"
     priors = nearest_poses(color_t, pose_t, poses, MAX_DT) if prior and pose_t is not None else None
     gt = relative_poses(np.stack([poses[k] for _, _, k in triples])) if reference else None
     refs, frames = [], {}
