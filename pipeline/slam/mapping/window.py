@@ -48,7 +48,7 @@ class MapSettings:
 
     renderer: Renderer
     render_views: ViewsRenderer
-    config: MappingConfig
+    mapping: MappingConfig
     loss: LossConfig
     near: float  # metres
     far: float
@@ -85,7 +85,7 @@ def map_window(
     on_step: Callable[[], None] | None = None,
 ) -> WindowResult:
     """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`)."""
-    plan = WindowPlan(settings.config.iters, on_step=on_step)
+    plan = WindowPlan(settings.mapping.iters, on_step=on_step)
     return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan)
 
 
@@ -104,7 +104,7 @@ def optimise_window(
     `prune_scale_factor` x `scene_radius` metres go too). With `plan.pose_lr` the views' poses
     are optimised with the Gaussians (the pose gradient through the view matrix, as in
     tracking), each as a twist applied to its camera-to-world: T = exp(twist) @ c2w."""
-    config = settings.config
+    config = settings.mapping
     params = as_leaves(gaussians)
     rates = _learning_rates(config)
     groups = [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES]
@@ -185,7 +185,7 @@ def _views_loss(
     params: Gaussians, views: list[Keyframe], cameras: list[Camera], settings: MapSettings
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean mapping loss over the views, and the Gaussians any of them saw ([N] bool)."""
-    config, weights, kernels = settings.config, settings.loss, settings.kernels
+    config, weights, kernels = settings.mapping, settings.loss, settings.kernels
     outs = [settings.renderer(params, cameras[0])] if len(cameras) == 1 else settings.render_views(params, cameras)
     losses = [
         kernels.mapping_loss(
