@@ -36,12 +36,12 @@ class SplaTAM:
         compiled kernels and recorded CUDA graphs are kept."""
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
         self.backend = MappingBackend(self._backend_settings, loop_closer_for(self.config), self.device)
-        self._passed: TrackerMark | None = None  # the tracking side's state as of the last frame mapping passed
+        self._passed_mark: TrackerMark | None = None  # the tracking side's state as of the last frame mapping passed
 
     @property
     def frames_done(self) -> int:
         """Frames mapping has passed (the frames a checkpoint holds)."""
-        return 0 if self._passed is None else self._passed.poses_done
+        return 0 if self._passed_mark is None else self._passed_mark.poses_done
 
     @property
     def gaussians(self) -> Gaussians | None:
@@ -59,7 +59,7 @@ class SplaTAM:
         tracking judged it lost."""
         tracked, result = self.frontend.track(frame, self.backend.latest)
         mapped = self.backend.skip() if result.lost else self.backend.map(tracked, is_last)
-        self._passed = self.frontend.mark()
+        self._passed_mark = self.frontend.mark()
         return mapped.filled(result)
 
     def finish(self, final_renders: int) -> int:
@@ -93,11 +93,11 @@ class SplaTAM:
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run after the last frame mapped."""
         keyframes = [k.pose for k in self.backend.keyframes]
-        return Checkpoint(self.frontend.state(self._passed, keyframes), self.backend.state())
+        return Checkpoint(self.frontend.state(self._passed_mark, keyframes), self.backend.state())
 
     def restore(self, saved: Checkpoint) -> None:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         self.frontend.restore(saved.tracking)
         self.backend.restore(saved.mapping)
-        self._passed = self.frontend.mark()
+        self._passed_mark = self.frontend.mark()
         self.frontend.trajectory.follow([k.pose for k in self.backend.keyframes])

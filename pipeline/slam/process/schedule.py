@@ -82,8 +82,7 @@ class ProcessSplaTAM:
         if first:
             self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
-        handed = not result.lost and self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last)
-        result.mapped = handed
+        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last)
         result.map_version = 0 if latest is None else latest.number
         result.gaussians = 0 if latest is None else len(latest.gaussians)
         result.seconds.update(densify=0.0, mapping=0.0)
