@@ -6,10 +6,11 @@ from __future__ import annotations
 import torch
 
 from pipeline.config import Config, switched_on
-from pipeline.render import Renderer, make_views_renderer
+from pipeline.render import Renderer, make_capacity_renderer, make_views_renderer
 from pipeline.slam.kernels import make_kernels
 from pipeline.slam.loops.closer import LoopCloser, NoLoopCloser
 from pipeline.slam.mapping.backend import BackendSettings
+from pipeline.slam.mapping.captured import CapturedMapping
 from pipeline.slam.mapping.window import MapSettings
 from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
 
@@ -24,11 +25,17 @@ def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tra
 
 def backend_settings(config: Config, renderer: Renderer, device: torch.device) -> BackendSettings:
     """What the mapping side needs besides the map and its loop closer: renderers, losses,
-    kernels and its config sections."""
-    kernels = make_kernels(switched_on(config.run.compile, device.type == "cuda"))
+    kernels, the graphed passes where `mapping.graph` asks for them and a fixed-capacity
+    renderer exists, and its config sections."""
+    cuda = device.type == "cuda"
+    kernels = make_kernels(switched_on(config.run.compile, cuda))
     views = make_views_renderer(config.render, config.gaussians, device)
     near, far = config.render.near, config.render.far
-    window = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
+    capacity_renderer = make_capacity_renderer(config.render, config.gaussians, device)
+    captured = None
+    if capacity_renderer is not None and switched_on(config.mapping.graph, cuda):
+        captured = CapturedMapping(capacity_renderer, config.mapping, config.loss, kernels, near, far, device)
+    window = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels, captured)
     return BackendSettings(window, config.keyframes, config.densify, config.gaussians, config.run.seed)
 
 
