@@ -10,6 +10,7 @@ from gpu_scenes import TOLERANCE, leaves, loss_of, random_pose, random_scene, re
 from pipeline.geometry import invert_pose
 from pipeline.render.reference import render_reference
 from pipeline.render.types import Camera, Gaussians, RenderOutput
+from pipeline.slam.cuda_graphs import record
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 WIDTH, HEIGHT = 320, 240
@@ -114,22 +115,13 @@ def test_the_fixed_capacity_render_replays_as_a_cuda_graph() -> None:
     view = camera.w2c.clone().requires_grad_(True)
 
     def step() -> torch.Tensor:
+        for tensor in (view, *vars(g).values()):
+            tensor.grad = None  # the recorded backward writes fresh gradients in the graph's memory
         out = render(g, Camera(view, camera.intrinsics, WIDTH, HEIGHT))
-        loss = loss_of(out, weights)
-        loss.backward()
+        loss_of(out, weights).backward()
         return out.color
 
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(2):
-            step()
-    torch.cuda.current_stream().wait_stream(side)
-    for tensor in (view, *vars(g).values()):
-        tensor.grad = None
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        color = step()
+    graph, color = record(step, warmup=2)
     moved = invert_pose(invert_pose(camera.w2c) @ _small_motion(camera.w2c.device))
     with torch.no_grad():
         view.copy_(moved)  # the recorded backward writes the gradients afresh: nothing to zero
