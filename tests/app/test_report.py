@@ -10,11 +10,12 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import write_gt_run
 
 from pipeline.app import report
 from pipeline.extras import CHECKOUT, install_command, pip_command
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_metrics import ClosedLoopRow, LoopRecord, RunMetrics
 
@@ -32,12 +33,12 @@ def _next(run_dir: Path) -> list[str]:
 
 def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> None:
     lines = _next(run_dir)
-    assert len(lines) == 2 + len(FORMATS)  # view, evo, one export per format
+    assert len(lines) == 2 + len(EXPORTERS)  # view, evo, one export per format
     for line in lines:
         command = line.split("   #")[0]
         assert "|" not in command, line
         assert subprocess.run(["bash", "-n", "-c", command]).returncode == 0, line
-    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(FORMATS)
+    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(EXPORTERS)
 
 
 def test_what_is_not_installed_comes_with_its_install_command(run_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -69,3 +70,26 @@ def test_loop_closure_is_reported_only_where_it_ran() -> None:
     assert report.run_summary(loops).endswith(f", loops: {line}")
     plain = RunMetrics("room", frames=100)
     assert "loops" not in report.format_table(plain) and "loops" not in report.run_summary(plain)
+
+
+def test_the_warm_up_is_timed_from_the_pipelines_start() -> None:
+    """The first result 2 s after the start, the last warm-up frame's 3 s after it: metrics.json
+    states both beside the steady and the whole-run rates."""
+    from types import SimpleNamespace
+
+    from pipeline.app.report import WARMUP_FRAMES, timing_summary
+    from pipeline.slam.handoff import FrameResult
+    from pipeline.stages.frame_log import FrameLog
+
+    frames = FrameLog()
+    frames.started_at = 10.0
+    for i, arrived in enumerate((12.0, 12.5, 13.0, 13.1, 13.2)):
+        frames.add(
+            FrameResult(
+                i, i / 30, torch.eye(4), {"tracking": 0.0, "densify": 0.0, "mapping": 0.0, "total": 0.0}, 0, 0, 0.0, 1.0
+            ),
+            arrived,
+        )
+    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0))  # type: ignore[arg-type]
+    assert WARMUP_FRAMES == 2 and timing.first_result_s == 2.0 and timing.warmup_s == 3.0
+    assert timing.fps_wall == 1.25 and timing.fps_steady == pytest.approx(2 / 0.2)

@@ -43,7 +43,7 @@ def adjust(
     settings: MapSettings,
 ) -> WindowResult:
     """The map and the poses of `views` (oldest first; the first stays) optimised together."""
-    config = settings.config
+    config = settings.mapping
     plan = WindowPlan(
         config.adjust_iters,
         pose_lr=config.adjust_pose_lr,

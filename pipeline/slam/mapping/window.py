@@ -15,17 +15,8 @@ from pipeline.render import Camera, Gaussians, Renderer, ViewsRenderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, prune_mask
 from pipeline.slam.kernels import EAGER, SlamKernels
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.mapping.optimizers import MapOptimizer, make_map_optimizer
-
-
-def _learning_rates(config: MappingConfig) -> dict[str, float]:
-    return {
-        "means": config.lr_means,
-        "quats": config.lr_rotations,
-        "log_scales": config.lr_scales,
-        "opacity_logits": config.lr_opacities,
-        "colors": config.lr_colors,
-    }
+from pipeline.slam.mapping.captured import CapturedMapping
+from pipeline.slam.mapping.optimizers import MapOptimizer, learning_rates, make_map_optimizer
 
 
 def _prune(optimizer: MapOptimizer, keep: torch.Tensor) -> Gaussians:
@@ -48,11 +39,12 @@ class MapSettings:
 
     renderer: Renderer
     render_views: ViewsRenderer
-    config: MappingConfig
+    mapping: MappingConfig
     loss: LossConfig
     near: float  # metres
     far: float
     kernels: SlamKernels = EAGER
+    captured: CapturedMapping | None = None  # passes with fixed poses and Adam at a fixed capacity (CUDA graphs)
 
 
 @dataclass(frozen=True)
@@ -65,9 +57,7 @@ class WindowPlan:
     pose_lr: float = 0.0  # > 0: each view's pose is optimised jointly, a twist per view, Adam at this step
     fixed: frozenset[int] = frozenset()  # positions in the views whose poses stay (the gauge: the first keyframe)
     on_step: Callable[[], None] | None = None  # called before each step (a mapping process's sign of life)
-    converged: float = (
-        0.0  # > 0 (with pose_lr): stop once a round of len(views) renders moved no twist component further
-    )
+    converged: float = 0.0  # > 0 (with pose_lr): stop once a round of len(views) renders moved no twist further
 
 
 @dataclass(frozen=True)
@@ -88,7 +78,7 @@ def map_window(
     on_step: Callable[[], None] | None = None,
 ) -> WindowResult:
     """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`)."""
-    plan = WindowPlan(settings.config.iters, on_step=on_step)
+    plan = WindowPlan(settings.mapping.iters, on_step=on_step)
     return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan)
 
 
@@ -108,9 +98,14 @@ def optimise_window(
     are optimised with the Gaussians (the pose gradient through the view matrix, as in
     tracking), each as a twist in its camera's own frame: T = c2w @ exp(twist) (rotation about the
     camera's centre: a rotation about the world origin would move a far camera's centre with it)."""
-    config = settings.config
+    config = settings.mapping
+    if settings.captured is not None and plan.pose_lr == 0 and config.optimizer == "adam":
+        mapped, renders_done, pruned = settings.captured.optimise(
+            gaussians, views, intrinsics, scene_radius, rng, plan.iters, plan.on_step, plan.should_stop
+        )
+        return WindowResult(mapped, [view.c2w for view in views], renders_done, pruned)
     params = as_leaves(gaussians)
-    rates = _learning_rates(config)
+    rates = learning_rates(config)
     groups = [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES]
     optimizer = make_map_optimizer(groups, config.optimizer, params.means.is_cuda)
     poses = _ViewPoses(views, intrinsics, settings, plan)
@@ -206,7 +201,7 @@ def _views_loss(
     params: Gaussians, views: list[Keyframe], cameras: list[Camera], settings: MapSettings
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean mapping loss over the views, and the Gaussians any of them saw ([N] bool)."""
-    config, weights, kernels = settings.config, settings.loss, settings.kernels
+    config, weights, kernels = settings.mapping, settings.loss, settings.kernels
     outs = [settings.renderer(params, cameras[0])] if len(cameras) == 1 else settings.render_views(params, cameras)
     losses = [
         kernels.mapping_loss(
