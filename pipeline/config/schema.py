@@ -131,7 +131,9 @@ class MappingConfig:
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
     adjust_iters: int = 200  # an adjustment's view renders at most
     adjust_pose_lr: float = 2e-3  # Adam step of an adjusted keyframe's twist (radians, metres)
-    adjust_converged: float = 5e-4  # an adjustment stops once a round (a render per keyframe) moved no twist component further
+    adjust_converged: float = (
+        5e-4  # an adjustment stops once a round (a render per keyframe) moved no twist component further
+    )
     graph: Switch = "auto"  # passes at fixed poses with adam: Gaussians and tile intersections at a fixed capacity, each step replayed as a CUDA graph (auto: on CUDA; on the CPU the same steps, ungraphed)
 
 

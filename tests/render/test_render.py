@@ -150,7 +150,7 @@ def test_pose_only_optimisation_recovers_a_perturbed_camera() -> None:
     start[:3, :3] = quat_to_rotmat(torch.tensor([math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0]))
     start[:3, 3] = torch.tensor([0.012, -0.01, 0.01])
     config = TrackingConfig(iters=100, lr_rotation=0.002, lr_translation=0.002, silhouette_threshold=0.9)
-    result = track(scene, frame, start, TrackSettings(renderer, config, LossConfig(), 0.01, 100.0))
+    result = track(scene, frame, start, settings=TrackSettings(renderer, config, LossConfig(), 0.01, 100.0))
     error_t = torch.linalg.norm(result.c2w[:3, 3] - truth[:3, 3]).item()
     error_r = torch.arccos(((result.c2w[:3, :3].T @ truth[:3, :3]).trace() - 1) / 2).clamp(-1, 1).item()
     start_t = torch.linalg.norm(start[:3, 3]).item()

@@ -89,12 +89,12 @@ def test_process_schedule_tracks_every_frame_against_versions_never_written_mean
     track = slam.frontend.tracker
     seen: list[tuple[int, str, str]] = []
 
-    def checked(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor):  # type: ignore[no-untyped-def]
+    def checked(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False):  # type: ignore[no-untyped-def]
         held = slam.held
         assert held is not None and held.gaussians is gaussians
         before = _checksum(gaussians)
         time.sleep(0.05)  # let the mapping process publish meanwhile
-        result = track(gaussians, frame, c2w_init)
+        result = track(gaussians, frame, c2w_init, large_step)
         seen.append((held.number, before, _checksum(gaussians)))
         return result
 

@@ -39,7 +39,9 @@ class StubTracker:
         self.script = script
         self.guesses: list[torch.Tensor] = []
 
-    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> TrackResult:
+    def __call__(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
+    ) -> TrackResult:
         c2w, failure = self.script[len(self.guesses)]
         self.guesses.append(c2w_init)
         return TrackResult(c2w, torch.zeros(()), torch.ones(()), failure)
@@ -51,7 +53,9 @@ class BasinTracker:
     def __init__(self, truth: torch.Tensor, basin_m: float) -> None:
         self.truth, self.basin_m = truth, basin_m
 
-    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> TrackResult:
+    def __call__(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
+    ) -> TrackResult:
         if float(torch.linalg.norm(c2w_init[:3, 3] - self.truth[:3, 3])) < self.basin_m:
             return TrackResult(self.truth, torch.zeros(()), torch.ones(()))
         return TrackResult(c2w_init, torch.zeros(()), torch.ones(()), "only 0 pixels fit the map")

@@ -24,8 +24,9 @@ from pipeline.slam.keyframes import Keyframe, most_redundant, select_window
 from pipeline.slam.loops.closer import LoopCloser, NoLoopCloser
 from pipeline.slam.loops.detection import ClosedLoop
 from pipeline.slam.map_version import MapVersion
+from pipeline.slam.mapping.bundle import adjust, covisible
 from pipeline.slam.mapping.densify import densify_mask
-from pipeline.slam.mapping.window import MapSettings, WindowPlan, map_window, optimise_window
+from pipeline.slam.mapping.window import MapSettings, WindowPlan, WindowResult, map_window, optimise_window
 from pipeline.slam.state import BackendState
 from pipeline.slam.timing import StageClock
 
@@ -146,8 +147,10 @@ class MappingBackend:
         current = Keyframe.of(frame.index, frame.color, frame.depth, c2w, tracked.position)
         with self.clock.stage("mapping"):
             self._map(window + [current], frame.intrinsics)
+            if keeps:
+                self._keep(current)
+                self._adjust(frame.intrinsics)
         if keeps:
-            self._keep(current)
             assert self.gaussians is not None
             self.gaussians, self.keyframes = self.loops.close_loops(self.gaussians, self.keyframes, frame.intrinsics)
         self._bound_map()
@@ -189,12 +192,30 @@ class MappingBackend:
         plan = WindowPlan(renders, should_stop, self.mapping.refine_pose_lr, fixed, self.on_step)
         radius, window = self.scene_radius, self.settings.window
         result = optimise_window(self.gaussians, chosen, self.intrinsics, radius, self.rng, window, plan)
+        self._optimised(positions, result)
+        self.publish()
+        return result.renders
+
+    def _adjust(self, intrinsics: torch.Tensor) -> None:
+        """Local bundle adjustment at the keyframe just kept (`bundle.adjust`): the poses of it
+        and of the keyframes that see most of it (`mapping.adjust_window` in all; 0: none) with
+        the map, the oldest of them fixed."""
+        if self.mapping.adjust_window < 2 or self.gaussians is None:
+            return
+        samples = self.settings.keyframes.overlap_samples
+        positions = covisible(self.keyframes, self.mapping.adjust_window, intrinsics, samples, self.generator)
+        if len(positions) < 2:
+            return
+        views = [self.keyframes[p] for p in positions]
+        result = adjust(self.gaussians, views, intrinsics, self.scene_radius, self.rng, self.settings.window)
+        self._optimised(positions, result)
+
+    def _optimised(self, positions: list[int], result: WindowResult) -> None:
+        """Take a pass over the stored keyframes at `positions`: its map and their poses."""
         self.gaussians = result.gaussians
         self.loops.kept(result.kept)
         for position, c2w in zip(positions, result.c2w):
             self.keyframes[position] = replace(self.keyframes[position], c2w=c2w)
-        self.publish()
-        return result.renders
 
     def _refinement_views(self, count: int) -> list[int]:
         """Positions of the next `count` keyframes of the refinement cycle."""

@@ -20,7 +20,7 @@ import torch
 
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import constant_velocity, invert_pose
+from pipeline.geometry import constant_velocity, invert_pose, motion_extent
 from pipeline.render import Gaussians
 from pipeline.slam.handoff import FrameResult, TrackedFrame
 from pipeline.slam.keyframes import KeyframePose, relocalisation_picks
@@ -87,6 +87,8 @@ class TrackingFrontend:
         self.trajectory = Trajectory(device)
         self.loss_history: list[float] = []
         self.clock = StageClock(device)
+        self._last_c2w: torch.Tensor | None = None  # [4, 4] the last frame's pose on the host (as tracked)
+        self._large_step = False  # the last frame moved far from the one before, or was lost
 
     @property
     def frames_done(self) -> int:
@@ -107,6 +109,7 @@ class TrackingFrontend:
         """Continue after the frames of `saved` (`Trajectory.restored`)."""
         self.trajectory = Trajectory.restored(saved, self.device)
         self.loss_history = list(saved.loss_history)
+        self._last_c2w, self._large_step = None, False  # the step into the first frame after it is unknown
 
     def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackingOutcome:
         """Frame t against the latest map version (None: the first frame, where the map starts:
@@ -120,7 +123,8 @@ class TrackingFrontend:
                 attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
             else:
                 gaussians = latest.for_current_stream()
-                attempt = self._attempt(gaussians, frame, self._initial_pose(frame, latest.keyframes))
+                guess = self._initial_pose(frame, latest.keyframes)
+                attempt = self._attempt(gaussians, frame, guess, large_step=self._large_step)
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
             self._record(frame, attempt, self._anchor(latest), first=latest is None)
@@ -129,6 +133,7 @@ class TrackingFrontend:
             ready = torch.cuda.Event()
             ready.record()
         result = self._result(frame, attempt)
+        self._note_step(result.c2w, attempt.state)
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
         if frame.received_at is not None:
             result.received_at = frame.received_at
@@ -185,11 +190,27 @@ class TrackingFrontend:
         usual = sorted(intervals)[len(intervals) // 2]
         return self.config.lost_translation_m * max(1.0, (frame.timestamp - good) / usual)
 
+    def _note_step(self, c2w: torch.Tensor, state: TrackingState) -> None:
+        """Whether the next frame is expected far from its guess: the frame just tracked (its
+        pose `c2w` [4, 4] on the host) moved more than `align_large_step_m` or `_deg` from the
+        one before (constant velocity repeats that step), or was lost (the next guess is then
+        an older pose)."""
+        if self._last_c2w is not None:
+            moved_m, moved_deg = motion_extent(invert_pose(self._last_c2w) @ c2w).tolist()
+            large = moved_m > self.config.align_large_step_m or moved_deg > self.config.align_large_step_deg
+            self._large_step = large or state is TrackingState.LOST
+        self._last_c2w = c2w
+
     def _attempt(
-        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, keyframe: int | None = None
+        self,
+        gaussians: Gaussians,
+        frame: DeviceFrame,
+        c2w_init: torch.Tensor,
+        keyframe: int | None = None,
+        large_step: bool = False,
     ) -> Attempt:
         """The configured tracker from camera-to-world `c2w_init` [4, 4], judged (one host read)."""
-        tracked = self.tracker(gaussians, frame, c2w_init)
+        tracked = self.tracker(gaussians, frame, c2w_init, large_step=large_step)
         c2w = tracked.c2w.detach()
         verdict = self._verdict(frame, c2w, c2w_init, tracked.best_loss, tracked.coverage, tracked.failure)
         return Attempt(c2w, verdict, keyframe)
@@ -211,7 +232,7 @@ class TrackingFrontend:
         picks = relocalisation_picks(len(keyframes), self.config.relocalise_candidates, self.trajectory.lost_in_row)
         for position in picks:
             keyframe = keyframes[position]
-            attempt = self._attempt(gaussians, frame, keyframe.c2w, keyframe.index)
+            attempt = self._attempt(gaussians, frame, keyframe.c2w, keyframe.index, large_step=True)
             sound = not attempt.verdict.lost and not attempt.verdict.warning
             if sound and (best.verdict.lost or attempt.verdict.per_pixel < best.verdict.per_pixel):
                 best = attempt

@@ -40,9 +40,13 @@ class TrackResult:
 
 
 class Tracker(Protocol):
-    """One frame's pose against a frozen map, from camera-to-world `c2w_init` [4, 4]."""
+    """One frame's pose against a frozen map, from camera-to-world `c2w_init` [4, 4];
+    `large_step`: the caller expects the frame far from its guess (align solves wide from the
+    start; adam has no basin to widen)."""
 
-    def __call__(self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> TrackResult: ...
+    def __call__(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
+    ) -> TrackResult: ...
 
 
 def make_tracker(settings: TrackSettings) -> Tracker:
@@ -60,20 +64,35 @@ def make_tracker(settings: TrackSettings) -> Tracker:
 
 
 def track_aligned(
-    gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, aligner: AlignTracker, refine: TrackSettings
+    gaussians: Gaussians,
+    frame: DeviceFrame,
+    c2w_init: torch.Tensor,
+    large_step: bool = False,
+    *,
+    aligner: AlignTracker,
+    refine: TrackSettings,
 ) -> TrackResult:
-    """Align to one render at camera-to-world `c2w_init` [4, 4], then `refine.config.iters` of
-    adam's iterations from there (none: the loss is the alignment's squared point-to-plane
-    residual, metres^2, over its inliers)."""
-    aligned = aligner(gaussians, frame, c2w_init)
+    """Align to the map rendered at camera-to-world `c2w_init` [4, 4] (`AlignTracker`; wide from
+    the start with `large_step`), then `refine.config.iters` of adam's iterations from there
+    (none: the loss is the alignment's squared point-to-plane residual, metres^2, over its
+    inliers)."""
+    aligned = aligner(gaussians, frame, c2w_init, wide=large_step)
     if refine.config.iters == 0:
         return TrackResult(aligned.c2w, aligned.geometric_sq, aligned.coverage, aligned.failure)
-    return replace(track(gaussians, frame, aligned.c2w, refine), failure=aligned.failure)
+    return replace(track(gaussians, frame, aligned.c2w, settings=refine), failure=aligned.failure)
 
 
-def track(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, settings: TrackSettings) -> TrackResult:
+def track(
+    gaussians: Gaussians,
+    frame: DeviceFrame,
+    c2w_init: torch.Tensor,
+    large_step: bool = False,
+    *,
+    settings: TrackSettings,
+) -> TrackResult:
     """Fresh Adam on the world-to-camera quaternion and translation for `config.iters` steps,
-    from camera-to-world `c2w_init` [4, 4].
+    from camera-to-world `c2w_init` [4, 4] (`large_step` changes nothing: Adam's reach is its
+    iterations).
 
     The Gaussians are frozen (passed without gradients). The best pose is chosen on the
     device: the loss at step i belongs to the parameters before step i's update.
