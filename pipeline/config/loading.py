@@ -232,6 +232,7 @@ def validate(config: Config) -> None:
         (synthetic.loops >= 0, "synthetic.loops must be >= 0"),
         (config.loops.min_keyframes_back >= 2, "loops.min_keyframes_back must be >= 2"),
         (config.loops.max_candidates >= 1, "loops.max_candidates must be >= 1"),
+        (config.loops.confirm_keyframes >= 0, "loops.confirm_keyframes must be >= 0"),
         (
             1 <= len(config.loops.verify_iters) <= 6 and min(config.loops.verify_iters, default=0) >= 1,
             "loops.verify_iters takes 1 to 6 iteration counts (one per pyramid level, coarse to fine), each >= 1",

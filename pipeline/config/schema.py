@@ -174,6 +174,9 @@ class LoopConfig:
     min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
     agree_m: float = 0.05  # accepted: two verified candidates place the current keyframe within this of each other
     agree_deg: float = 2.0  # and within this angle
+    confirm_keyframes: int = (
+        2  # a verified loop is also accepted when one of this many keyframes before verified one that agrees (0: never)
+    )
     information_scale: float = 0.01  # an alignment's normal equations x this: an edge's information (pixels correlate)
     odometry_sigma_m: float = 0.01  # odometry edges of keyframes tracked by adam (no normal equations): std, metres
     odometry_sigma_deg: float = 0.5  # and of their rotation, degrees

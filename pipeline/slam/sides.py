@@ -39,8 +39,10 @@ def backend_settings(config: Config, renderer: Renderer, device: torch.device) -
     return BackendSettings(window, config.keyframes, config.densify, config.gaussians, config.run.seed)
 
 
-def loop_closer_for(config: Config) -> LoopCloser | NoLoopCloser:
-    """A fresh loop closer when `loops.enabled`, else one that does nothing."""
+def loop_closer_for(config: Config, settings: BackendSettings) -> LoopCloser | NoLoopCloser:
+    """A fresh loop closer when `loops.enabled` (its alignment iterating with the mapping side's
+    kernels: `settings`), else one that does nothing."""
     if not config.loops.enabled:
         return NoLoopCloser()
-    return LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed)
+    iteration = settings.window.kernels.align_iteration
+    return LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed, iteration)

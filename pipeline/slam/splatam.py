@@ -35,7 +35,8 @@ class SplaTAM:
         """Empty tracking and mapping sides around the same tracker and mapping settings, whose
         compiled kernels and recorded CUDA graphs are kept."""
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
-        self.backend = MappingBackend(self._backend_settings, loop_closer_for(self.config), self.device)
+        loops = loop_closer_for(self.config, self._backend_settings)
+        self.backend = MappingBackend(self._backend_settings, loops, self.device)
         self._passed_mark: TrackerMark | None = None  # the tracking side's state as of the last frame mapping passed
 
     @property

@@ -31,11 +31,11 @@ from pipeline.slam.loops.detection import (
     LoopTally,
     Verdict,
     Verification,
-    detect_loops,
     verdicts,
     verify,
 )
 from pipeline.slam.loops.pose_graph import chained, edge_residual, fixed_information, optimise
+from pipeline.slam.loops.search import LoopSearch
 from pipeline.slam.tracking.align_tracker import SolveReport
 
 F64 = torch.float64
@@ -92,13 +92,13 @@ def trap_sequence(tmp_path_factory: pytest.TempPathFactory) -> Sequence:
 def search(sequence: Sequence, config: LoopConfig = CONFIG) -> list[LoopDetection]:
     """Loop detection at every keyframe, as the mapping side runs it when one is added."""
     generator = torch.Generator().manual_seed(0)
-    descriptors = torch.stack([descriptor(k.color) for k in sequence.keyframes])
+    loops = LoopSearch(config, TRACKING)
     detections = []
     for count in range(1, len(sequence.keyframes) + 1):
-        current = sequence.keyframes[count - 1]
-        pixels = sample_valid_pixels(current.depth, 1600, generator)
         keyframes = sequence.keyframes[:count]
-        detections.append(detect_loops(keyframes, descriptors[:count], sequence.intrinsics, pixels, config, TRACKING))
+        sources = loops.kept(keyframes, sequence.intrinsics)
+        pixels = sample_valid_pixels(keyframes[-1].depth, 1600, generator)
+        detections.append(loops.detect(keyframes, sources, sequence.intrinsics, pixels))
     return detections
 
 
@@ -161,7 +161,9 @@ def test_verification_recovers_the_true_relative_pose_from_the_drifted_one(loop_
     start = invert_pose(keyframes[old].c2w.double()) @ keyframes[current].c2w.double()
     true = invert_pose(truth[old]) @ truth[current]
     assert float((start[:3, 3] - true[:3, 3]).norm()) > 0.05  # the estimates are off by > 5 cm
-    verification = verify(keyframes[current], keyframes[old], loop_sequence.intrinsics, CONFIG, TRACKING)
+    loops = LoopSearch(CONFIG, TRACKING)
+    sources = loops.kept(keyframes, loop_sequence.intrinsics)  # every keyframe's view; the last one's points
+    verification = verify(sources, loops.views, keyframes[old], start, loop_sequence.intrinsics, CONFIG, TRACKING)
     assert not verification.failure
     assert float((verification.relative[:3, 3] - true[:3, 3]).norm()) < 0.01
     information = verification.information

@@ -11,8 +11,8 @@ parts of the map overlap.
 
 Odometry edges join consecutive nodes. Their relative poses are the current estimates, derived
 again before each optimisation (so that mapping's refinement of keyframe poses counts); their
-information is the dense alignment of the new keyframe to the previous one (`verify`), or
-`odometry_sigma_*` where that alignment judged itself unsound.
+information is the normal equations of the new keyframe's alignment to the previous one at that
+relative pose (`LoopSearch.odometry`), or `odometry_sigma_*` where that judged itself unsound.
 
 With loop closure off (`loops.enabled` false) the mapping side holds a `NoLoopCloser`: the same
 calls, doing nothing.
@@ -29,11 +29,12 @@ import torch
 from pipeline.config import LoopConfig, TrackingConfig
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
-from pipeline.slam.loops.candidates import descriptor
-from pipeline.slam.loops.detection import ClosedLoop, closed_loop_line, detect_loops, verify
+from pipeline.slam.loops.detection import ClosedLoop, closed_loop_line
 from pipeline.slam.loops.map_correction import corrections, move_map
 from pipeline.slam.loops.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
+from pipeline.slam.loops.search import LoopSearch
 from pipeline.slam.state import LoopState
+from pipeline.slam.tracking.rgbd_alignment import AlignIteration, SourcePoints, lm_iteration
 
 log = logging.getLogger("gsplatam")
 F64 = torch.float64
@@ -50,13 +51,23 @@ class Correction:
 
 
 class LoopCloser:
-    def __init__(self, config: LoopConfig, tracking: TrackingConfig, samples: int, seed: int) -> None:
+    def __init__(
+        self,
+        config: LoopConfig,
+        tracking: TrackingConfig,
+        samples: int,
+        seed: int,
+        iteration: AlignIteration = lm_iteration,
+    ) -> None:
+        """`iteration`: the alignment's Levenberg-Marquardt iteration (the compiled one where
+        `run.compile` says so, as the tracker's)."""
         self.config = config
         self.tracking = tracking
         self.samples = samples  # pixels sampled for the candidates' overlap (keyframes.overlap_samples)
         self.seed = seed
+        self.iteration = iteration
         self.state = LoopState.empty()
-        self._descriptors: dict[int, torch.Tensor] = {}  # keyframe position -> descriptor, computed once
+        self.search = LoopSearch(config, tracking, iteration)
         self._unpublished: Correction | None = None  # a loop closed whose corrected map is not yet published
 
     def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
@@ -65,7 +76,7 @@ class LoopCloser:
         if saved is None:
             saved = replace(LoopState.empty(), creator=torch.full((gaussians,), -1, dtype=torch.int64))
         self.state = replace(saved, creator=saved.creator.to(device), node_positions=list(saved.node_positions))
-        self._descriptors = {}
+        self.search = LoopSearch(self.config, self.tracking, self.iteration)  # its sightings are not saved
 
     def saved(self, keyframes: list[Keyframe]) -> LoopState:
         """A host copy of the state, its nodes at the stored `keyframes`' current poses."""
@@ -133,21 +144,16 @@ class LoopCloser:
         odometry edge, then the loop search; -> the correction when a loop is closed."""
         started = time.perf_counter()
         current = keyframes[-1]
+        sources = self.search.kept(keyframes, intrinsics)
         state, node = self.state, len(self.state.node_positions)
         state.node_positions.append(current.pose.position)
         state.node_c2w = torch.cat([state.node_c2w, current.c2w.detach().to("cpu", F64)[None]])
         state.odometry_information = torch.cat(
-            [state.odometry_information, self._odometry(keyframes, intrinsics, node)[None]]
+            [state.odometry_information, self._odometry(keyframes, sources, intrinsics, node)[None]]
         )
-        known = self._descriptors  # those of keyframes dropped from the store go; after a resume they are made again
-        self._descriptors = {}
-        for keyframe in keyframes:
-            position = keyframe.pose.position
-            self._descriptors[position] = known[position] if position in known else descriptor(keyframe.color)
-        descriptors = torch.stack(list(self._descriptors.values()))
         generator = torch.Generator().manual_seed(self.seed + node)  # no state to keep: one draw per node
         pixels = sample_valid_pixels(current.depth, self.samples, generator)
-        detection = detect_loops(keyframes, descriptors, intrinsics, pixels, self.config, self.tracking)
+        detection = self.search.detect(keyframes, sources, intrinsics, pixels)
         state.tally = state.tally.counted(detection, time.perf_counter() - started)
         node_of = state.node_of()
         found = [
@@ -182,13 +188,17 @@ class LoopCloser:
         position = self.state.node_positions[node]
         return next((k.index for k in keyframes if k.pose.position == position), position)
 
-    def _odometry(self, keyframes: list[Keyframe], intrinsics: torch.Tensor, node: int) -> torch.Tensor:
+    def _odometry(
+        self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor, node: int
+    ) -> torch.Tensor:
         """The information [6, 6] of the edge from the keyframe before the newest (node - 1: the
-        store keeps its newest keyframes) to the newest; zeros for the first node."""
+        store keeps its newest keyframes) to the newest (`sources`: its pyramid as points;
+        `LoopSearch.odometry`), `odometry_sigma_*` where that judged itself unsound; zeros for the
+        first node."""
         if node == 0:
             return torch.zeros(6, 6, dtype=F64)
         fallback = fixed_information(self.config.odometry_sigma_m, self.config.odometry_sigma_deg)
-        verification = verify(keyframes[-1], keyframes[-2], intrinsics, self.config, self.tracking)
+        verification = self.search.odometry(keyframes, sources, intrinsics)
         return fallback if verification.failure else verification.information
 
     def _graph(self, keyframes: list[Keyframe], loops: list[Edge]) -> PoseGraph:

@@ -4,10 +4,15 @@ At each new keyframe, the candidates (`loop_candidates`: near by the current est
 least `min_keyframes_back` older, the most alike first) are each verified by dense RGB-D
 alignment of the current keyframe against the candidate's stored colour and depth
 (`rgbd_alignment`; the candidate plays the render, its silhouette 1 where its depth is valid),
-started from the relative pose the estimates imply and judged as the tracker judges itself (`SolveReport`, under the `loops.*` limits). A verified
-candidate is accepted only when a second verified candidate puts the current keyframe at the
-same place: two old views agreeing on one pose are rarely both wrong. The pose graph then keeps
-an accepted loop only if its optimum agrees with it (`pose_graph.optimise`).
+started from the relative pose the estimates imply and judged as the tracker judges itself
+(`SolveReport`, under the `loops.*` limits): first at the coarse pyramid levels, kept for every
+keyframe (`views.KeyframeViews`), and only then at the finest. A verified candidate is accepted
+only when a second verified loop puts the current keyframe at the same place: another
+candidate of the same keyframe, or a loop one of the last `confirm_keyframes` keyframes
+verified, carried to this one by the estimates (two views agreeing on one pose are rarely both
+wrong; a real revisit is seen by consecutive keyframes, and one old keyframe may be all that
+each of them sees again). The pose graph then keeps an accepted loop only if its optimum agrees
+with it (`pose_graph.optimise`).
 """
 
 from __future__ import annotations
@@ -23,9 +28,11 @@ from pipeline.geometry import invert_pose
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.loops.candidates import LoopCandidate, loop_candidates
 from pipeline.slam.loops.pose_graph import Edge, GraphSolution, MotionSize, alignment_information, motion_size
-from pipeline.slam.tracking.align_tracker import SolveReport, level_params, prepare_rgbd, read_report
-from pipeline.slam.tracking.pyramid import check_pyramid_fits
-from pipeline.slam.tracking.rgbd_alignment import align
+from pipeline.slam.loops.views import KeyframeViews
+from pipeline.slam.tracking.align_tracker import SolveReport, level_params, read_report
+from pipeline.slam.tracking.rgbd_alignment import AlignIteration, SourcePoints, align, lm_iteration
+
+NO_INFORMATION = torch.zeros(6, 6, dtype=torch.float64)  # of a verification that failed at its coarse levels
 
 
 class Verdict(Enum):
@@ -81,6 +88,15 @@ class LoopDetection:
     @property
     def rejected(self) -> int:
         return self.detected - self.accepted
+
+    def sightings(self, keyframes: Sequence[Keyframe]) -> list[Sighting]:
+        """Its verified loops as `Sighting`s (`keyframes`: the store it searched)."""
+        current = keyframes[self.current].pose.position
+        return [
+            Sighting(keyframes[check.candidate.position].pose.position, current, check.verification.relative)
+            for check in self.checks
+            if check.verified
+        ]
 
     def edges(self) -> tuple[Edge, ...]:
         """The accepted loops as pose-graph edges (candidate -> current)."""
@@ -162,39 +178,66 @@ def closed_loop_line(loop: ClosedLoop) -> str:
     )
 
 
-def verification_limits(tracking: TrackingConfig, config: LoopConfig) -> TrackingConfig:
-    """The tracker's self-judgement under loop closure's stricter limits."""
+def verification_limits(tracking: TrackingConfig, config: LoopConfig, level: int = 0) -> TrackingConfig:
+    """The tracker's self-judgement under loop closure's limits, at pyramid level `level`: the
+    residual limits widen with a coarser pixel's footprint, as the depth gate does."""
     return replace(
         tracking,
         align_min_inliers=config.min_inliers,
         align_min_conditioning=config.min_conditioning,
-        align_max_residual_m=config.max_residual_m,
+        align_max_residual_m=config.max_residual_m * 2**level,
         align_max_intensity_rms=config.max_intensity_rms,
     )
 
 
-def verify(
-    current: Keyframe, old: Keyframe, intrinsics: torch.Tensor, config: LoopConfig, tracking: TrackingConfig
-) -> Verification:
-    """Align `current` (colour, depth) to `old` (its stored colour and depth as the target, valid
-    depth as the silhouette), from the relative pose their estimates imply, over the
-    `verify_iters` schedule; judged by `SolveReport.failure` under `verification_limits` and
-    by coverage (`min_coverage`)."""
-    levels = len(config.verify_iters)
-    check_pyramid_fits(levels, current.depth.shape[0], current.depth.shape[1])
-    silhouette = (old.depth > 0).to(old.depth.dtype)
-    images = (current.color, current.depth, intrinsics, old.color, old.depth, silhouette)
-    sources, targets = prepare_rgbd(*images, levels, tracking.align_min_silhouette)
-    start = (invert_pose(old.c2w.double()) @ current.c2w.double()).to(sources[0].points.device)
-    params = level_params(tracking, levels)
-    state = align(sources, targets, params, config.verify_iters, start=start)
-    report = read_report(state, sources[0].valid)
+def judged(report: SolveReport, config: LoopConfig, tracking: TrackingConfig, level: int = 0) -> str:
+    """Why a verification at pyramid level `level` fails (`SolveReport.failure` under
+    `verification_limits`, and coverage: `min_coverage`); empty when it passes."""
+    failure = report.failure(verification_limits(tracking, config, level))
     coverage = report.inliers / max(report.valid, 1)
-    failure = report.failure(verification_limits(tracking, config))
     if not failure and coverage < config.min_coverage:
         failure = f"only {coverage:.0%} of the keyframe's pixels fit the old one (at least {config.min_coverage:.0%})"
+    return failure
+
+
+def verify(
+    sources: Sequence[SourcePoints],
+    views: KeyframeViews,
+    old: Keyframe,
+    start: torch.Tensor,
+    intrinsics: torch.Tensor,
+    config: LoopConfig,
+    tracking: TrackingConfig,
+    schedule: tuple[int, ...] | None = None,
+    iteration: AlignIteration = lm_iteration,
+) -> Verification:
+    """Align the current keyframe (`sources`, its pyramid as points, finest first) to `old` (its
+    stored colour and depth as the target, `views`) from the relative pose `start` [4, 4]
+    float64 (the current camera in the old one's, as the estimates put them), over `schedule`
+    (default `verify_iters`): the coarse levels first, judged (`judged` at level 1), and only a
+    candidate that passes them at the finest level, judged in full."""
+    schedule = schedule or config.verify_iters
+    params = level_params(tracking, len(schedule))
+    if len(schedule) > 1:
+        state = align(sources[1:], views.coarse(old), params[1:], schedule[:-1], iteration, start=start)
+        report = read_report(state, sources[1].valid)
+        failure = judged(report, config, tracking, level=1)
+        if failure:
+            return Verification(
+                report, report.inliers / max(report.valid, 1), state.pose.cpu(), NO_INFORMATION, failure
+            )
+        start = state.pose
+    finest = views.finest(old, intrinsics)
+    state = align(sources[:1], [finest], params[:1], schedule[-1:], iteration, start=start)
+    report = read_report(state, sources[0].valid)
     information = alignment_information(state.fit.hessian, state.pose, config.information_scale)
-    return Verification(report, coverage, state.pose.cpu(), information, failure)
+    coverage = report.inliers / max(report.valid, 1)
+    return Verification(report, coverage, state.pose.cpu(), information, judged(report, config, tracking))
+
+
+def relative_pose(old: Keyframe, current: Keyframe) -> torch.Tensor:
+    """[4, 4] float64: the `current` camera in the `old` one's, as their estimates put them."""
+    return invert_pose(old.c2w.detach().double()) @ current.c2w.detach().double()
 
 
 def implied_pose(old: Keyframe, relative: torch.Tensor) -> torch.Tensor:
@@ -208,43 +251,86 @@ def agree(a: torch.Tensor, b: torch.Tensor, config: LoopConfig) -> bool:
     return difference.translation_m <= config.agree_m and difference.rotation_deg <= config.agree_deg
 
 
+@dataclass(frozen=True)
+class Sighting:
+    """A loop an earlier keyframe verified: kept for `loops.confirm_keyframes` keyframes, so that
+    a later keyframe's verified loop that puts the keyframes where this one does confirms it."""
+
+    old: int  # the old keyframe's frame position
+    current: int  # the frame position of the keyframe that saw it
+    relative: torch.Tensor  # [4, 4] float64: that keyframe's camera in the old one's, as aligned
+
+    def implied(self, keyframes: Sequence[Keyframe]) -> torch.Tensor | None:
+        """The newest of `keyframes`' camera-to-world [4, 4] float64 that this loop implies: the
+        pose it gives its own keyframe, carried to the newest by their estimates' relative pose
+        (None when either keyframe has left the store)."""
+        stored = {keyframe.pose.position: keyframe for keyframe in keyframes}
+        old, seen_by = stored.get(self.old), stored.get(self.current)
+        if old is None or seen_by is None:
+            return None
+        return implied_pose(old, self.relative) @ relative_pose(seen_by, keyframes[-1]).cpu()
+
+
 def detect_loops(
     keyframes: Sequence[Keyframe],
-    descriptors: torch.Tensor,
+    views: KeyframeViews,
+    sources: Sequence[SourcePoints],
     intrinsics: torch.Tensor,
     pixels: torch.Tensor,
     config: LoopConfig,
     tracking: TrackingConfig,
+    sightings: Sequence[Sighting] = (),
+    iteration: AlignIteration = lm_iteration,
 ) -> LoopDetection:
-    """The loop search for the newest of `keyframes`: candidates (`loop_candidates`), each
-    verified (`verify`), the verified ones accepted where another verified one agrees on the
-    current keyframe's pose (`agree`)."""
+    """The loop search for the newest of `keyframes` (its pyramid as points: `sources`; the
+    stored keyframes' descriptors and targets: `views`): candidates (`loop_candidates`), each
+    verified (`verify`), the verified ones accepted where another verified candidate, or a
+    loop an earlier keyframe verified (`sightings`), agrees on the current keyframe's pose
+    (`agree`)."""
     current = keyframes[-1]
-    candidates = loop_candidates(keyframes, descriptors, intrinsics, pixels, config)
-    verifications = [verify(current, keyframes[c.position], intrinsics, config, tracking) for c in candidates]
+    candidates = loop_candidates(keyframes, views.descriptors(list(keyframes)), intrinsics, pixels, config)
+    verifications = [
+        verify(
+            sources,
+            views,
+            keyframes[c.position],
+            relative_pose(keyframes[c.position], current).to(sources[0].points.device),
+            intrinsics,
+            config,
+            tracking,
+            iteration=iteration,
+        )
+        for c in candidates
+    ]
     implied = [implied_pose(keyframes[c.position], v.relative) for c, v in zip(candidates, verifications)]
+    earlier = [pose for pose in (sighting.implied(keyframes) for sighting in sightings) if pose is not None]
     checks = [
         LoopCheck(candidate, verification, verdict, reason)
         for candidate, verification, (verdict, reason) in zip(
-            candidates, verifications, verdicts(verifications, implied, config)
+            candidates, verifications, verdicts(verifications, implied, config, earlier)
         )
     ]
     return LoopDetection(len(keyframes) - 1, tuple(checks))
 
 
 def verdicts(
-    verifications: Sequence[Verification], implied: Sequence[torch.Tensor], config: LoopConfig
+    verifications: Sequence[Verification],
+    implied: Sequence[torch.Tensor],
+    config: LoopConfig,
+    earlier: Sequence[torch.Tensor] = (),
 ) -> list[tuple[Verdict, str]]:
     """Per candidate, (verdict, why not accepted): failed verification; else accepted when
     another verified candidate's implied pose of the current keyframe (`implied`, [4, 4]
-    float64 each) agrees with its own; else unconfirmed."""
+    float64 each), or one that an earlier keyframe's verified loop implies (`earlier`), agrees
+    with its own; else unconfirmed."""
     sound = [not verification.failure for verification in verifications]
     result = []
     for k, verification in enumerate(verifications):
+        others = [implied[j] for j in range(len(implied)) if sound[j] and j != k]
         if not sound[k]:
             result.append((Verdict.FAILED_VERIFICATION, verification.failure))
-        elif any(sound[j] and j != k and agree(implied[k], implied[j], config) for j in range(len(implied))):
+        elif any(agree(implied[k], other, config) for other in [*others, *earlier]):
             result.append((Verdict.ACCEPTED, ""))
         else:
-            result.append((Verdict.UNCONFIRMED, "no second verified candidate puts the keyframe at the same pose"))
+            result.append((Verdict.UNCONFIRMED, "no second verified loop puts the keyframe at the same pose"))
     return result

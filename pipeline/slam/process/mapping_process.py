@@ -75,7 +75,7 @@ class MappingLoop:
         self.kernel_timer = KernelTimer()
 
     def _new_backend(self) -> MappingBackend:
-        backend = MappingBackend(self.settings, loop_closer_for(self.config), self.device)
+        backend = MappingBackend(self.settings, loop_closer_for(self.config, self.settings), self.device)
         backend.on_step = self._beat
         return backend
 

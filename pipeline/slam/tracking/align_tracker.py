@@ -131,14 +131,35 @@ def prepare_rgbd(
 ) -> tuple[list[SourcePoints], list[TargetMaps]]:
     """A frame (colour [H, W, 3] in [0, 1], depth [H, W] metres, intrinsics [3, 3]) as source
     points and a target view (a render, or a stored keyframe with silhouette 1 where its depth
-    is valid) as maps, `levels` pyramid levels each, finest first. The target counts where its
-    silhouette passes `min_silhouette`; its intensity is normalised by the silhouette, as the
-    renderer normalises depth."""
-    sources = [source_points(level) for level in rgbd_pyramid(intensity(color), depth, intrinsics, levels)]
-    masked_depth = torch.where(silhouette > min_silhouette, target_depth, torch.zeros_like(target_depth))
-    gray = intensity(target_color) / silhouette.clamp(min=min_silhouette)
-    targets = [target_maps(level) for level in rgbd_pyramid(gray, masked_depth, intrinsics, levels)]
-    return sources, targets
+    is valid) as maps, `levels` pyramid levels each, finest first (`source_pyramid`,
+    `target_pyramid`)."""
+    sources = source_pyramid(color, depth, intrinsics, levels)
+    return sources, target_pyramid(target_color, target_depth, intrinsics, silhouette, levels, min_silhouette)
+
+
+def source_pyramid(
+    color: torch.Tensor, depth: torch.Tensor, intrinsics: torch.Tensor, levels: int
+) -> list[SourcePoints]:
+    """A frame (colour [H, W, 3] in [0, 1], depth [H, W] metres, intrinsics [3, 3]) as the points
+    that alignment moves, `levels` pyramid levels, finest first."""
+    return [source_points(level) for level in rgbd_pyramid(intensity(color), depth, intrinsics, levels)]
+
+
+def target_pyramid(
+    color: torch.Tensor,
+    depth: torch.Tensor,
+    intrinsics: torch.Tensor,
+    silhouette: torch.Tensor,
+    levels: int,
+    min_silhouette: float,
+) -> list[TargetMaps]:
+    """A view aligned to (colour [H, W, 3], depth [H, W] metres, silhouette [H, W]) as maps,
+    `levels` pyramid levels, finest first. It counts where its silhouette passes
+    `min_silhouette`; its intensity is normalised by the silhouette, as the renderer normalises
+    depth."""
+    masked_depth = torch.where(silhouette > min_silhouette, depth, torch.zeros_like(depth))
+    gray = intensity(color) / silhouette.clamp(min=min_silhouette)
+    return [target_maps(level) for level in rgbd_pyramid(gray, masked_depth, intrinsics, levels)]
 
 
 @dataclass(frozen=True)
