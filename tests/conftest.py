@@ -32,6 +32,7 @@ else:
 
 ROOT = Path(__file__).resolve().parents[1]  # the checkout
 SHARED_TUM = ROOT.parent / "shared" / "data" / "tum_fr1_xyz_37"
+SHARED_CABINET = ROOT.parent / "shared" / "data" / "tum_fr3_cabinet_kf57"  # a real loop round a cabinet
 SMALL_SYNTH = SyntheticConfig(frames=6, width=64, height=48, seed=3)
 
 
@@ -54,6 +55,13 @@ def tum_sample() -> Path:
     if not (SHARED_TUM / "rgb.txt").exists():
         pytest.skip(f"the shared TUM sample is absent ({SHARED_TUM})")
     return SHARED_TUM
+
+
+@pytest.fixture
+def cabinet_sample() -> Path:
+    if not (SHARED_CABINET / "rgb.txt").exists():
+        pytest.skip(f"the shared cabinet loop is absent ({SHARED_CABINET})")
+    return SHARED_CABINET
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -170,10 +170,10 @@ class LoopConfig:
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this
     min_inliers: float = 0.7  # verified: of the pixels on the candidate's valid depth, this fraction within the gate
     max_residual_m: float = 0.015  # verified: RMS point-to-plane residual at most this
-    max_intensity_rms: float = 0.1  # verified: RMS intensity residual (less its mean) at most this
+    max_intensity_rms: float = 0.2  # verified: RMS intensity residual (less its mean) at most this
     min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
-    agree_m: float = 0.05  # accepted: two verified candidates place the current keyframe within this of each other
-    agree_deg: float = 2.0  # and within this angle
+    agree_m: float = 0.08  # accepted: two verified candidates place the current keyframe within this of each other
+    agree_deg: float = 4.0  # and within this angle
     confirm_keyframes: int = (
         2  # a verified loop is also accepted when one of this many keyframes before verified one that agrees (0: never)
     )

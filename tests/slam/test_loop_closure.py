@@ -37,6 +37,7 @@ from pipeline.slam.loops.detection import (
 from pipeline.slam.loops.pose_graph import chained, edge_residual, fixed_information, optimise
 from pipeline.slam.loops.search import LoopSearch
 from pipeline.slam.tracking.align_tracker import SolveReport
+from pipeline.stages.upload import host_frame_tensors
 
 F64 = torch.float64
 NOISY = dict(layout="tum", depth_noise=0.0015, holes=0.02, time_jitter=0.004)
@@ -269,3 +270,31 @@ def test_the_loop_closer_moves_nothing_in_the_trap_room_or_with_a_single_keyfram
     single = LoopCloser(CONFIG, TRACKING, samples=1600, seed=0)
     assert single.keyframe_kept(trap_sequence.keyframes[:1], trap_sequence.intrinsics) is None
     assert single.state.tally.detected == 0 and single.state.tally.searches == 1 and single.state.node_positions == [0]
+
+
+def test_the_real_loop_round_the_cabinet_is_closed(cabinet_sample: Path) -> None:
+    """TUM fr3/cabinet (57 real frames 0.67 s apart, once round a cabinet, ending 0.34 m from the
+    start) at 80x60, a keyframe every 5th frame and the last, as `tiny` keeps them, at poses that
+    drift 1 degree of yaw and 2 cm (per axis, at random) per keyframe: 21 cm and 9 degrees at the
+    end. The last two keyframes each see the first again, each alone (no second candidate):
+    the second confirms the first's loop, the loop is closed and the drift taken back (measured:
+    ATE 15.5 -> 9.4 cm)."""
+    dataset = open_dataset(DatasetConfig(path=str(cabinet_sample), width=80, height=60))
+    frames = [host_frame_tensors(frame) for frame in dataset.frames()]
+    picks = [*range(0, len(frames), 5), len(frames) - 1]
+    truth = torch.stack([frames[i].c2w_gt.double() for i in picks])  # type: ignore[union-attr]
+    generator = torch.Generator().manual_seed(0)
+    estimate = [truth[0]]
+    for k in range(1, len(truth)):
+        yaw = torch.tensor([0.0, math.radians(1.0), 0.0], dtype=F64)
+        error = torch.cat([yaw, 0.02 * torch.randn(3, generator=generator, dtype=F64)])
+        estimate.append(estimate[-1] @ invert_pose(truth[k - 1]) @ truth[k] @ se3_exp(error))
+    keyframes = [
+        Keyframe.of(frames[i].index, frames[i].color, frames[i].depth, c2w.float()) for i, c2w in zip(picks, estimate)
+    ]
+    closer, corrected, corrections = close_loops(Sequence(keyframes, truth, frames[0].intrinsics))
+    tally = closer.state.tally
+    assert corrections == 1 and tally.accepted == 1 and tally.unconfirmed == 1 and tally.failed_verification == 0
+    assert closer.state.closed[0].matched == (frames[0].index,)
+    before = ate(torch.stack(estimate), truth)
+    assert before > 0.1 and ate(corrected, truth) < 0.7 * before
