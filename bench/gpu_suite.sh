@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
-# Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
+# Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample and, for the drift parts, the cabinet loop):
+#   PATH=.venv/bin:$PATH DRY=1 bash bench/gpu_suite.sh /tmp/dry drift-tiny: a rehearsal of parts on this machine's CPU at 64x48 (data from ../shared/data)
 #   bash bench/gpu_suite.sh OUT_DIR parity schedules-tiny schedules-small schedules-base process-options ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
 # The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (docs/cluster.md),
 # and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/; loops GTSAM's in .whl-loops/.
@@ -13,13 +14,24 @@ out=$(mktemp -d)
 mkdir -p "$dest"
 trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
 trap 'exit 143' TERM INT
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
-export XDG_CACHE_HOME=$PWD/.device/cache  # our CUDA extension built by an earlier call comes carried in .device/
-tum=.data/tum_fr1_xyz_37
-export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
-bench() { python3 -m pipeline bench --quiet --out "$out" --runs /tmp/runs "$@" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
+dry=()  # DRY=1: a rehearsal on this machine's CPU before a device call (nothing installed, bench parts tiny)
+if [ -n "${DRY:-}" ]; then
+  dry=(--set run.device=cpu --set dataset.width=64 --set dataset.height=48 --set dataset.end=6
+       --set synthetic.width=64 --set synthetic.height=48 --set synthetic.frames=6)
+  export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 GSPLATAM_COMMIT=${GSPLATAM_COMMIT:-dry}
+  data=${DATA:-../shared/data}
+else
+  python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
+  export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+  export XDG_CACHE_HOME=$PWD/.device/cache  # our CUDA extension built by an earlier call comes carried in .device/
+  export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+  data=${DATA:-.data}
+fi
+tum=$data/tum_fr1_xyz_37
+cabinet=$data/tum_fr3_cabinet_kf57  # issue 35's real loop (57 frames round a cabinet), carried in .data/ beside the TUM sample
+bench() { python3 -m pipeline bench --quiet --out "$out" --runs /tmp/runs "$@" "${dry[@]}" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
+drift_variants=process-one-render,process,process-loops,process-adjust,process-adjust-loops
 for part in "$@"; do
   echo "== $part (suite at ${SECONDS}s)"
   case $part in
@@ -70,6 +82,14 @@ for part in "$@"; do
                     timeout 200 python3 bench/live_latency.py --out "$out/$schedule" --size 640x480 --seconds ${LIVE_S:-90} \
                       --set slam.schedule=$schedule 2>&1 | tail -n 3
                   done ;;
+    drift-tiny|drift-small)  # issue 35: large steps, local adjustment, loops on and off; the cabinet's loop, the TUM sample, fast loops
+                # (one render is align before large steps were followed; the rest the new tracking; 640x480 throughout)
+                bench "$cabinet" "$tum" synthetic-fast-loops --presets "${part#drift-}" --variants $drift_variants \
+                  --set dataset.width=640 --set dataset.height=480 --stem "drift_${part#drift-}" ;;
+    drift-base) bench "$cabinet" "$tum" synthetic-fast-loops --presets base --variants default,process \
+                  --set dataset.width=640 --set dataset.height=480 --stem drift_base
+                python3 bench/loop_recall.py --out "$out" --data "$cabinet" --data "$tum" --size 640x480 --trap \
+                  $([ -n "${DRY:-}" ] && echo --size 80x60 --max-pairs 2) 2>&1 | tail -n 3 ;;
     loops) bench synthetic-loops synthetic-trap --presets tiny --variants default,loops --stem loops_tiny
            bench synthetic-loops --presets small --variants ${SMALL_VARIANTS:-default,loops} --stem loops_small ;;
     soak) python3 bench/live_latency.py --out "$out" --size 256x192 --seconds ${SOAK_S:-240} --sample-s 10 2>&1 | tail -n 4 ;;

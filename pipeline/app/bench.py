@@ -51,6 +51,13 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-no-sample": ("slam.schedule=process", "run.kernel_sample=off"),  # the kernel sampler's own cost
     "loops": ("loops.enabled=true",),  # loop closure on the keyframe pose graph
     "process-loops": ("slam.schedule=process", "loops.enabled=true"),
+    "process-one-render": (  # align before large steps were followed: one render, no wide schedule
+        "slam.schedule=process",
+        "tracking.align_max_renders=1",
+        "tracking.align_wide_iters=10,6,4",
+    ),
+    "process-adjust": ("slam.schedule=process", "mapping.adjust_window=5"),  # local bundle adjustment at each keyframe
+    "process-adjust-loops": ("slam.schedule=process", "mapping.adjust_window=5", "loops.enabled=true"),
 }
 
 
@@ -64,6 +71,10 @@ SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
     ),
     "synthetic-loops": (  # TUM-like, twice round the room at 0.75 m/s: a long sequence that revisits places
         "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.loops=2", "synthetic.speed=0.75",
+        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
+    ),
+    "synthetic-fast-loops": (  # TUM-like, twice round the room at 1 m/s (3.3 cm a frame): fast steps, then revisits
+        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.loops=2", "synthetic.speed=1.0",
         "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
     ),
     "synthetic-trap": (  # TUM-like in the room of look-alike halves: no place is revisited

@@ -199,7 +199,6 @@ class AlignTracker:
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
         self.capture = capture
         self.params = level_params(config, len(config.align_iters))
-        self.recovery_schedule = (config.align_recovery_iters, *config.align_iters[1:])
         self._solvers: dict[tuple[int, ...], Callable[..., tuple[LmState, torch.Tensor]]] = {}
 
     def __call__(
