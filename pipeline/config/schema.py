@@ -91,7 +91,9 @@ class TrackingConfig:
     align_min_conditioning: float = 1e-4  # align: a smaller eigenvalue ratio of the scaled normal equations fails
     align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
     align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
-    align_recovery_iters: int = 30  # align: coarsest-level iterations of the one recovery attempt (over the wide schedule)
+    align_recovery_iters: int = (
+        30  # align: coarsest-level iterations of the one recovery attempt (over the wide schedule)
+    )
     align_wide_iters: tuple[int, ...] = (
         20,
         10,
@@ -170,7 +172,9 @@ class LoopConfig:
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this
     min_inliers: float = 0.7  # verified: of the pixels on the candidate's valid depth, this fraction within the gate
     max_residual_m: float = 0.015  # verified: RMS point-to-plane residual at most this
-    max_intensity_rms: float = 0.25  # verified: RMS intensity residual (less its mean) at most this (real revisits: up to 0.15 at 320x240)
+    max_intensity_rms: float = (
+        0.25  # verified: RMS intensity residual (less its mean) at most this (real revisits: up to 0.15 at 320x240)
+    )
     min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
     agree_m: float = 0.08  # accepted: two verified candidates place the current keyframe within this of each other
     agree_deg: float = 4.0  # and within this angle
