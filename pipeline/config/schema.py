@@ -91,18 +91,9 @@ class TrackingConfig:
     align_min_conditioning: float = 1e-4  # align: a smaller eigenvalue ratio of the scaled normal equations fails
     align_max_residual_m: float = 0.02  # align: a larger RMS point-to-plane residual fails
     align_max_intensity_rms: float = 0.2  # align: a larger RMS intensity residual (less its mean) fails
-    align_recovery_iters: int = (
-        30  # align: coarsest-level iterations of the one recovery attempt (over the wide schedule)
-    )
-    align_wide_iters: tuple[int, ...] = (
-        20,
-        10,
-        6,
-        4,
-    )  # align: a large step's solve per level, coarse to fine (a level more: a wider basin)
-    align_large_step_m: float = (
-        0.03  # align: a solve that moves the camera further re-renders at its pose and aligns again (wide)
-    )
+    align_recovery_iters: int = 30  # align: coarsest-level iterations of the recovery attempt (wide schedule)
+    align_wide_iters: tuple[int, ...] = (20, 10, 6, 4)  # align: a large step's solve per level (a level more)
+    align_large_step_m: float = 0.03  # align: a solve moving the camera further renders again there, solves wide
     align_large_step_deg: float = 2.0  # align: likewise for its rotation, degrees
     align_max_renders: int = 3  # align: renders per frame at most (1: one render, no realignment)
     align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)
@@ -133,9 +124,7 @@ class MappingConfig:
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
     adjust_iters: int = 200  # an adjustment's view renders at most
     adjust_pose_lr: float = 2e-3  # Adam step of an adjusted keyframe's twist (radians, metres)
-    adjust_converged: float = (
-        5e-4  # an adjustment stops once a round (a render per keyframe) moved no twist component further
-    )
+    adjust_converged: float = 5e-4  # an adjustment stops once a round of renders moved no twist component further
     graph: Switch = "auto"  # passes at fixed poses with adam: Gaussians and tile intersections at a fixed capacity, each step replayed as a CUDA graph (auto: on CUDA; on the CPU the same steps, ungraphed)
 
 
@@ -172,15 +161,11 @@ class LoopConfig:
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this
     min_inliers: float = 0.7  # verified: of the pixels on the candidate's valid depth, this fraction within the gate
     max_residual_m: float = 0.015  # verified: RMS point-to-plane residual at most this
-    max_intensity_rms: float = (
-        0.25  # verified: RMS intensity residual (less its mean) at most this (real revisits: up to 0.15 at 320x240)
-    )
+    max_intensity_rms: float = 0.25  # verified: RMS intensity residual (less its mean) at most this
     min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
-    agree_m: float = 0.08  # accepted: two verified candidates place the current keyframe within this of each other
+    agree_m: float = 0.08  # accepted: two verified loops place the current keyframe within this of each other
     agree_deg: float = 4.0  # and within this angle
-    confirm_keyframes: int = (
-        2  # a verified loop is also accepted when one of this many keyframes before verified one that agrees (0: never)
-    )
+    confirm_keyframes: int = 2  # or when a loop one of this many keyframes before verified agrees (0: never)
     information_scale: float = 0.01  # an alignment's normal equations x this: an edge's information (pixels correlate)
     odometry_sigma_m: float = 0.01  # odometry edges of keyframes tracked by adam (no normal equations): std, metres
     odometry_sigma_deg: float = 0.5  # and of their rotation, degrees
