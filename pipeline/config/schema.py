@@ -165,7 +165,7 @@ class LoopConfig:
     min_conditioning: float = 1e-3  # verified: eigenvalue ratio of the scaled normal equations at least this
     agree_m: float = 0.08  # accepted: two verified loops place the current keyframe within this of each other
     agree_deg: float = 4.0  # and within this angle
-    confirm_keyframes: int = 2  # or when a loop one of this many keyframes before verified agrees (0: never)
+    confirm_keyframes: int = 2  # the second loop may be one of this many keyframes before (0: a candidate only)
     information_scale: float = 0.01  # an alignment's normal equations x this: an edge's information (pixels correlate)
     odometry_sigma_m: float = 0.01  # odometry edges of keyframes tracked by adam (no normal equations): std, metres
     odometry_sigma_deg: float = 0.5  # and of their rotation, degrees
