@@ -20,6 +20,7 @@ if [ -n "${DRY:-}" ]; then
        --set synthetic.width=64 --set synthetic.height=48 --set synthetic.frames=6)
   export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 GSPLATAM_COMMIT=${GSPLATAM_COMMIT:-dry}
   data=${DATA:-../shared/data}
+  runs=$(mktemp -d)  # run folders of its own: /tmp is shared on this machine
 else
   python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
   export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
@@ -27,10 +28,11 @@ else
   export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
   data=${DATA:-.data}
+  runs=/tmp/runs
 fi
 tum=$data/tum_fr1_xyz_37
 cabinet=$data/tum_fr3_cabinet_kf57  # issue 35's real loop (57 frames round a cabinet), carried in .data/ beside the TUM sample
-bench() { python3 -m pipeline bench --quiet --out "$out" --runs /tmp/runs "$@" "${dry[@]}" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
+bench() { python3 -m pipeline bench --quiet --out "$out" --runs "$runs" "$@" "${dry[@]}" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
 drift_variants=process-one-render,process,process-loops,process-adjust,process-adjust-loops
 for part in "$@"; do
   echo "== $part (suite at ${SECONDS}s)"

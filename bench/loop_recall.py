@@ -22,6 +22,7 @@ import argparse
 import json
 import math
 import statistics
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -175,7 +176,8 @@ def main() -> None:
         report["sequences"][Path(path).name] = {"summary": summary(rows), "rows": rows}
         print(f"{Path(path).name}: {json.dumps(summary(rows))}", flush=True)
     if args.trap:
-        rows = trap_rows(args, search, out / "loop_recall_work")
+        with tempfile.TemporaryDirectory() as work:  # the generated room: not a result
+            rows = trap_rows(args, search, Path(work))
         report["sequences"]["trap_twins"] = {"summary": summary(rows), "rows": rows}
         print(f"trap twins: {json.dumps(summary(rows))}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
