@@ -42,6 +42,8 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
     "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
     "process": ("slam.schedule=process",),  # mapping in its own process, refining between frames
+    "process-keyframe": ("slam.schedule=process", "mapping.rate=keyframe"),  # keyframes only densified and mapped
+    "process-frame": ("slam.schedule=process", "mapping.rate=frame"),  # every frame mapped (the rate before keyframe)
     "process-views2": ("slam.schedule=process", "mapping.views_per_step=2"),
     "process-lead1": ("slam.schedule=process", "slam.max_lead=1"),
     "process-no-refine": ("slam.schedule=process", "mapping.refine_while_idle=false"),
@@ -171,6 +173,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "depth_l1_cm": render.depth_l1_cm if render else None,
         "lost_frames": metrics.lost_frames,
         "unmapped_frames": metrics.unmapped_frames,
+        "frames_mapped": process["frames_mapped"] if process else metrics.frames_this_run - metrics.unmapped_frames,
         "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
         "loops_accepted": loops.accepted if loops else None,
         "loops_rejected": loops.rejected if loops else None,
@@ -259,6 +262,7 @@ COLUMNS = [
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
+    ("frames_mapped", "{}"),
     ("ate_before_loops_cm", "{:.2f}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"), ("loops_closed", "{}"),
     ("loop_search_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
 ]  # fmt: skip

@@ -12,6 +12,7 @@ RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
+MappingRate = Literal["frame", "keyframe"]
 TrackingMethod = Literal["adam", "align"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
@@ -114,7 +115,8 @@ class MappingConfig:
     max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
     views_per_step: int = 1  # keyframe views rendered together per optimiser step (the same renders in all)
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
-    refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
+    rate: MappingRate = "keyframe"  # process schedule: keyframe: only keyframes are densified and mapped (chosen on the tracking side by what they add), the rest tracked only; frame: every frame tracked well (sequential always maps every frame)
+    refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes (in turn the newest one's covisible window and the next of all of them)
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
     graph: Switch = "auto"  # passes at fixed poses with adam: Gaussians and tile intersections at a fixed capacity, each step replayed as a CUDA graph (auto: on CUDA; on the CPU the same steps, ungraphed)
@@ -132,8 +134,11 @@ class DensifyConfig:
 class KeyframeConfig:
     """Which frames are kept for mapping."""
 
-    every: int = 5  # every Nth frame becomes a keyframe (the last frame too)
+    every: int = 5  # every Nth frame becomes a keyframe (the last frame too); mapping.rate=keyframe: the longest gap between keyframes
     overlap_samples: int = 1600  # pixels sampled to measure a keyframe's overlap with the current frame
+    min_overlap: float = 0.9  # mapping.rate=keyframe: a frame with less than this fraction of its valid pixels inside the last keyframe's view is a keyframe
+    max_translation: float = 0.08  # mapping.rate=keyframe: so is one whose camera moved more than this x its median depth from the last keyframe (MonoGS's kf_translation)
+    min_coverage: float = 0.5  # mapping.rate=keyframe: so is one the map covers less of (tracking's coverage, against a map holding every keyframe so far)
     max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes
 
 
@@ -201,7 +206,7 @@ class SlamConfig:
     """How tracking and mapping share the frames."""
 
     schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own
-    max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (live: no bound)
+    max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (mapping.rate=keyframe: keyframes; live: no bound)
     backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
 
 

@@ -85,7 +85,7 @@ def test_process_schedule_tracks_every_frame_against_versions_never_written_mean
     while it is tracked against (checksums before and after each tracking step), though the
     mapping process publishes refinement passes all the while."""
     dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
-    slam = _process_slam([])
+    slam = _process_slam(["mapping.rate=frame"])  # every frame mapped (keyframe rate: test_keyframe_rate.py)
     track = slam.frontend.tracker
     seen: list[tuple[int, str, str]] = []
 
@@ -195,7 +195,7 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
 
     monkeypatch.setattr(ResultSink, "consume", consume_then_fail)
     timeout = "slam.backend_timeout_s=" + ("2" if how == "hang" else "60")  # an optimiser step on the CPU: < 1 s
-    assert main(_run_argv(replica_seq, tmp_path, [timeout])) == 1
+    assert main(_run_argv(replica_seq, tmp_path, [timeout, "mapping.rate=frame"])) == 1
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert "mapping process" in error and ("ended unexpectedly" if how == "kill" else "no sign of life") in error
     folder = tmp_path / "r"

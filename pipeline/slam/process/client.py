@@ -60,6 +60,7 @@ class MappingProcess:
         self.process.start()
         self.ring: FrameRing | None = None
         self.failure = ""  # why the mapping process is taken as failed; empty while it works
+        self.handed: list[int] = []  # the index of every frame handed over, in order
         self.mapped: list[m.FrameMapped] = []  # one per frame handed over and taken, in order
         self.refinement_renders = 0
         self.refinement_s = 0.0
@@ -93,9 +94,11 @@ class MappingProcess:
         assert version is not None
         return version
 
-    def hand_over(self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool) -> bool:
+    def hand_over(
+        self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool, keyframe: bool = False
+    ) -> bool:
         """Give a tracked frame (pose `c2w` [4, 4] camera-to-world, `position` among the run's
-        poses) to mapping. Offline it waits
+        poses; `keyframe`: chosen as one by the tracking side) to mapping. Offline it waits
         for a free ring slot (a bound on tracking's lead); live it never waits. -> whether the
         frame was handed over (live: False when mapping holds every slot)."""
         self.check()
@@ -106,8 +109,14 @@ class MappingProcess:
             slot = ring.put(frame, c2w, WATCH_S)
         if slot is None:
             return False
-        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last))
+        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last, keyframe))
+        self.handed.append(frame.index)
         return True
+
+    def caught_up(self) -> bool:
+        """Mapping has reported on every frame handed over: a version held from now on holds
+        every one it mapped."""
+        return len(self.mapped) >= len(self.handed)
 
     def state(self) -> tuple[BackendState | None, int]:
         """The mapping side's state now (a host copy; None before the first frame) and the map

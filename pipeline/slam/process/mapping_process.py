@@ -179,7 +179,8 @@ class MappingLoop:
         assert self.ring is not None
         slot = self.ring.take(handed.slot)
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
-        done = self.backend.map(TrackedFrame(frame, slot.c2w, handed.position), is_last=handed.is_last)
+        tracked = TrackedFrame(frame, slot.c2w, handed.position, keyframe=handed.keyframe)
+        done = self.backend.map(tracked, is_last=handed.is_last)
         self._publish()
         report = m.FrameMapped(handed.index, True, done.added, done.densify_s, done.mapping_s, done.closed)
         self.setup.outbox.put(report)
