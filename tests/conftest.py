@@ -14,6 +14,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from pipeline.config import DatasetConfig, GaussianConfig, SyntheticConfig, load_config
+from pipeline.extras import unavailable_extra
 from pipeline.io.outputs.intrinsics import CameraIntrinsics, write_intrinsics
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
@@ -54,6 +55,13 @@ def tum_sample() -> Path:
     if not (SHARED_TUM / "rgb.txt").exists():
         pytest.skip(f"the shared TUM sample is absent ({SHARED_TUM})")
     return SHARED_TUM
+
+
+def needs_extra(module: str) -> None:
+    """Skip the test, saying why (its pip command, or the system library it lacks), where
+    `module` of an extra is not installed or cannot load."""
+    if (why := unavailable_extra(module)) is not None:
+        pytest.skip(why)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
