@@ -117,7 +117,8 @@ def _write(
     gaussians = checkpoint.gaussians
     if fmt == "nerfstudio":
         working = folder.read_intrinsics()
-        views, camera = views_of(checkpoint, folder.read_config(), working, nerfstudio.frames, nerfstudio.size)
+        config, stamps = folder.read_config(), folder.frame_timestamps()
+        views, camera = views_of(checkpoint, config, working, nerfstudio.frames, nerfstudio.size, stamps)
         counts: list[int] = []
         atomic_folder(target, lambda staged: counts.append(write_nerfstudio(staged, views, camera, gaussians)))
         what = "keyframes" if nerfstudio.frames == "keyframes" else "frames"

@@ -26,6 +26,7 @@ import numpy as np
 import rerun as rr
 
 from pipeline.errors import OutputError, UserError
+from pipeline.io.files.atomic import temporary_name
 
 log = logging.getLogger("gsplatam")
 
@@ -119,7 +120,7 @@ class RerunRecording:
 
 def _partial(save: Path) -> Path:
     """Where rerun writes the recording until it is complete (rerun writes the file itself)."""
-    return save.with_name(f".{save.name}.tmp")
+    return temporary_name(save, str(os.getpid()))
 
 
 def _spawn_viewer(rec: rr.RecordingStream) -> None:
