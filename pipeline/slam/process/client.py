@@ -29,7 +29,15 @@ from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
 from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
-from pipeline.slam.process.shared_map import NEWEST_SLOT, VERSION, MapControl, MapReader
+from pipeline.slam.process.shared_map import (
+    NEWEST_SLOT,
+    VERSION,
+    MapControl,
+    MapReader,
+    SharedMemoryShort,
+    share,
+    shared_memory_advice,
+)
 from pipeline.slam.state import BackendState
 
 log = logging.getLogger("gsplatam")
@@ -47,7 +55,7 @@ class MappingProcess:
         self.live = live
         self.control = MapControl.create(context)
         self.reader = MapReader(self.control, 1 if config.gaussians.isotropic else 3, device)
-        self.heartbeat = torch.zeros(1, dtype=torch.float64).share_memory_()  # 0 until the process's first beat
+        self.heartbeat = share(torch.zeros(1, dtype=torch.float64))  # 0 until the process's first beat
         self._started = time.monotonic()
         self.to_mapping = context.Queue()
         self.from_mapping = context.Queue()
@@ -204,7 +212,11 @@ class MappingProcess:
 
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, m.GrowMap):
-            generation = self.reader.grow(message.capacity, message.keyframe_capacity)
+            try:
+                generation = self.reader.grow(message.capacity, message.keyframe_capacity)
+            except SharedMemoryShort as exc:
+                self._fail(f"the map outgrew the shared memory: {exc}")
+                return
             log.debug("map slots grown to %d Gaussians, %d keyframes", message.capacity, message.keyframe_capacity)
             self.to_mapping.put(m.UseGeneration(generation))
         elif isinstance(message, m.FrameMapped):
@@ -221,7 +233,8 @@ class MappingProcess:
         elif isinstance(message, m.Done):
             self._done.put(message)
         elif isinstance(message, m.MappingFailed):
-            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}")
+            advice = f"; {shared_memory_advice()}" if "unable to allocate shared memory" in message.error else ""
+            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}{advice}")
             log.debug("the mapping process's traceback:\n%s", message.error)
 
     def _watch(self) -> None:
