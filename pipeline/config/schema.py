@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from pipeline.errors import UserError
+
 DatasetFormat = Literal["auto", "replica", "tum"]
 GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
@@ -195,6 +197,10 @@ class SlamConfig:
     schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own
     max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (live: no bound)
     backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
+
+    def __post_init__(self) -> None:
+        if not self.backend_timeout_s > 0:  # 0 would take a healthy mapping process for a hung one at once
+            raise UserError(f"slam.backend_timeout_s must be > 0 (seconds), not {self.backend_timeout_s}")
 
 
 @dataclass(frozen=True)
