@@ -134,14 +134,15 @@ def _main(argv: list[str] | None) -> int:
     except StageFailure as exc:
         if isinstance(exc.cause, UserError):
             return _fail(str(exc))
-        if isinstance(exc.cause, MappingProcessFailed):  # what was processed is written: exit 1, not 2
-            print(
-                f"gsplatam: error: {exc.cause}; what was processed is saved (continue with --resume)", file=sys.stderr
-            )
+        if isinstance(exc.cause, MappingProcessFailed):  # what was processed is written (said above): exit 1
+            print(f"gsplatam: error: {exc.cause}", file=sys.stderr)
             return 1
         if isinstance(exc.cause, ImportError) and (message := missing_extra(exc.cause)):
             return _fail(f"stage '{exc.stage}': {message}")
         raise
+    except MappingProcessFailed as exc:  # after SLAM: what the mapping process completed is written (said above)
+        print(f"gsplatam: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("gsplatam: interrupted", file=sys.stderr)
         return 130

@@ -9,9 +9,10 @@ marker or, from before the marker, with both config.toml and frames.csv (a datas
 `groundtruth.txt` is never touched). `--resume` is the one way to continue a run folder.
 
 When a new run ends having saved something, the output folder's `latest` points at it (a
-symlink, or a text file naming it where the file system has no symlinks); a run that saved
-nothing (it failed or was stopped before its first save) removes what it wrote, its folder with
-it when nothing else is left there, and leaves `latest` alone. A `latest` that is not this
+symlink, or a text file naming it where the file system has no symlinks); a run that processed
+no frame (it failed or was stopped before its first) removes what it wrote, its folder with it
+when nothing else is left there, and leaves `latest` alone. A folder holding a processed frame
+is never removed. A `latest` that is not this
 module's pointer (a user's own file, folder or link to elsewhere) is never replaced: the run
 says so in one line and goes on.
 """
@@ -121,6 +122,9 @@ def _settle(folder: RunFolder) -> None:
     try:
         if folder.holds_results():
             _point_latest_at(folder.path)
+            return
+        if folder.frame_timestamps():  # a folder holding a processed frame is never removed
+            log.info("%s is kept: frames.csv holds frames processed, though no map was saved", folder.path)
             return
         folder.remove_unfinished()
         log.info("nothing was saved: removed what this run wrote in %s", folder.path)

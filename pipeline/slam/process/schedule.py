@@ -8,18 +8,26 @@ what mapping did with each frame comes back as `FrameMapped` reports (`mapping_s
 
 The published state observers see (`SlamView`) is every frame tracked so far, the map version
 held for the last one and the keyframes' poses as mapping refined them.
+
+A mapping process that fails (dies, hangs, or is no longer waited for after a second signal)
+costs no tracked frame: a frame being tracked when it fails completes (not mapped), the next
+frame is refused before it is tracked (MappingProcessFailed), and a checkpoint then holds every
+frame tracked with the newest complete map version; `failure` says why and `unmapped` which
+frames the map lacks.
 """
 
 from __future__ import annotations
 
 import logging
 import random
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 import torch
 
 from pipeline.config import Config
+from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
@@ -33,6 +41,8 @@ from pipeline.slam.state import BackendState, Checkpoint
 from pipeline.slam.tracking.frontend import TrackingFrontend
 
 log = logging.getLogger("gsplatam")
+
+HOLD_AFTER_FAILURE_S = 1.0  # how long the newest version is waited for once the mapping process failed
 
 
 class ProcessSplaTAM:
@@ -72,9 +82,24 @@ class ProcessSplaTAM:
         held = self.held
         return () if held is None else held.keyframes
 
+    @property
+    def failure(self) -> str:
+        """Why the mapping process failed (empty while it works, and after a stop the user asked for)."""
+        return self.mapping.failure
+
+    def unmapped(self) -> list[int]:
+        """The frames handed to mapping that it never took (it ended first)."""
+        return self.mapping.unmapped()
+
+    def stop_waiting(self) -> None:
+        """Wait for the mapping process no more: what is complete is used (a second signal)."""
+        self.mapping.stop_waiting()
+
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
-        identity), then hand it to the mapping process unless it is lost."""
+        identity), then hand it to the mapping process unless it is lost. The first frame's step
+        ends once its map is published, so the frame taken after that wait is the newest (live),
+        as under the sequential schedule. MappingProcessFailed before tracking, never after."""
         self.mapping.check()
         first = self.frontend.frames_done == 0
         latest = None if first else self.mapping.hold_newest(self._first_version)
@@ -84,7 +109,12 @@ class ProcessSplaTAM:
             self._intrinsics = frame.intrinsics.cpu()
         result = tracked.result
         position = self.frontend.frames_done - 1
-        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
+        try:
+            result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
+            if first and result.mapped:
+                self.mapping.hold_newest(self._first_version)
+        except MappingProcessFailed:  # the frame is tracked and kept; the next one is refused
+            result.mapped = False
         result.map_version = 0 if latest is None else latest.number
         result.gaussians = 0 if latest is None else len(latest.gaussians)
         result.seconds.update(densify=0.0, mapping=0.0)
@@ -105,10 +135,15 @@ class ProcessSplaTAM:
 
     def checkpoint(self) -> Checkpoint:
         """Every frame tracked, with mapping's state as of now (a round trip to the mapping
-        process). If that process has failed, or has sent no state although a version is held:
-        the map version held last and the mapping state of the last checkpoint (or an empty
-        keyframe store), so that nothing tracked is lost."""
-        state = None if self.mapping.failure else self.mapping.state()[0]
+        process). If that process has failed (or fails meanwhile, or is no longer waited for),
+        or has sent no state although a version is held: the newest complete map version and
+        the mapping state of the last checkpoint (or an empty keyframe store), so that nothing
+        tracked is lost."""
+        try:
+            state = self.mapping.state()[0]
+        except MappingProcessFailed:
+            state = None
+            self.mapping.reader.hold(HOLD_AFTER_FAILURE_S)  # the newest version the process completed
         if state is not None:
             self._saved = state
         mapping = state or self._mapping_from_held()
@@ -139,10 +174,15 @@ class ProcessSplaTAM:
         self._first_version = self.mapping.newest_version()
         self.frontend.follow(self.mapping.hold_newest(self._first_version).keyframes)
 
-    def finish(self, final_renders: int) -> int:
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders
-        over every keyframe); hold the final version. -> the final renders done."""
-        renders = self.mapping.finish(final_renders)
+        over every keyframe, ending at its next step once `should_stop()`); hold the final
+        version. -> the final renders done (0 where the mapping process failed: `failure`)."""
+        try:
+            renders = self.mapping.finish(final_renders, should_stop)
+        except MappingProcessFailed as exc:
+            log.debug("no final mapping: %s", exc)
+            return 0
         newest = self.mapping.newest_version()
         if newest >= self._first_version:  # none after a warm-up when no frame followed it
             self.mapping.hold_newest(newest)

@@ -226,15 +226,21 @@ class MapReader:
             self._generations[number] = generation
         return generation
 
-    def hold(self) -> MapVersion | None:
-        """The newest complete version, held until the next call (None before the first)."""
-        fields = self.control.fields
-        with self.control.lock:
+    def hold(self, wait_s: float | None = None) -> MapVersion | None:
+        """The newest complete version, held until the next call (None before the first). With
+        `wait_s`, the control block's lock is waited for that long at most (a writer killed
+        while holding it never lets go): the version held before is kept then."""
+        fields, lock = self.control.fields, self.control.lock
+        if not lock.acquire(timeout=wait_s):
+            return self.held
+        try:
             generation, index = int(fields[NEWEST_GENERATION]), int(fields[NEWEST_SLOT])
             if generation < 0:
                 return None
             fields[READING_GENERATION], fields[READING_SLOT] = generation, index
             number, count, kept = (int(fields[f + index]) for f in (VERSION, COUNT, KEYFRAMES))
+        finally:
+            lock.release()
         with self._allocating:
             slot = self._generations[generation].slots[index]
             for older in [g for g in self._generations if g < generation]:
