@@ -277,6 +277,52 @@ def test_live_the_first_frames_step_ends_with_its_map_and_a_failed_mapping_proce
         slam.close()
 
 
+@pytest.mark.slow
+def test_a_live_session_whose_mapping_process_dies_saves_every_frame_and_does_not_advise_resume(
+    replica_seq: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """serve under process, the mapping process killed after 3 frames: every frame processed is
+    in checkpoint, trajectory, frames.csv and metrics.json (stopped), and the line says that a
+    live session is not continued with --resume (which refuses live folders)."""
+    import logging
+    import multiprocessing
+
+    from pipeline.app import serve as serve_module
+    from pipeline.app.setup import LIVE_LAYOUT, finish_config
+    from pipeline.errors import StageFailure
+    from pipeline.io.sources.datasets.source import DatasetSource
+    from pipeline.stages.sinks import ResultSink
+
+    consume = ResultSink.consume
+
+    def consume_then_kill(self: ResultSink, result: Any) -> None:
+        consume(self, result)
+        if len(self.log.results) == 3:
+            (process,) = [p for p in multiprocessing.active_children() if p.name == "gsplatam-mapping"]
+            os.kill(process.pid, signal.SIGKILL)
+
+    monkeypatch.setattr(ResultSink, "consume", consume_then_kill)
+    settings = [f"run.output={tmp_path}", "run.name=live", "run.device=cpu", "live.status_port=0",
+                "slam.schedule=process", *FAST]  # fmt: skip
+    setup = finish_config(load_config("tiny", overrides=settings), CPU, LIVE_LAYOUT, live=True)
+    source = DatasetSource(open_dataset(DatasetConfig(path=str(replica_seq))))
+    with caplog.at_level(logging.INFO, "gsplatam"), pytest.raises((StageFailure, MappingProcessFailed)) as failed:
+        serve_module.serve(setup, source, progress=False)
+    assert "the mapping process ended unexpectedly" in str(failed.value)
+    metrics = _consistent(tmp_path / "live")
+    assert metrics["frames"] >= 3 and metrics["stopped"]["frames_saved"] == metrics["frames"]
+    said = [r.getMessage() for r in caplog.records if "frames processed" in r.getMessage()]
+    assert said and "not continued with --resume" in said[-1] and "--resume " not in said[-1]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, "gsplatam"):  # refused at once: no room generated for it first
+        assert main(["run", "--resume", str(tmp_path / "live"), "--quiet", "--output", str(tmp_path)]) == 2
+    assert "is a live run" in capsys.readouterr().err and "synthetic room" not in caplog.text
+
+
 def test_a_backend_timeout_of_0_is_refused_before_anything_is_written(
     replica_seq: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -38,12 +38,15 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset and camera_of(args.dataset):
         return _live(args)
     from pipeline.app.report import files_and_next_steps, format_table, gsplatam_command
+    from pipeline.app.resume import refuse_a_live_run
     from pipeline.app.run import run_slam
     from pipeline.io.outputs.run_folder import RunFolder
 
     if args.resume and args.overwrite:
         raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
     resume = RunFolder(Path(args.resume)) if args.resume else None
+    if resume is not None:
+        refuse_a_live_run(resume)
     if resume is not None and not args.config and not resume.config.exists():
         raise UserError(f"no {resume.config.name} in {args.resume}: is it a run folder?")
     config, device = requested_config(args, live=False, config_file=resume.config if resume else None)

@@ -109,6 +109,17 @@ def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
         raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
 
 
+def read_description(path: Path) -> RunDescription | None:
+    """The run a checkpoint was written by, from its header alone (no tensor is read); None where
+    there is no readable header (`read_checkpoint` then says what is wrong)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = json.loads((f.metadata() or {})["gsplatam"])
+        return RunDescription.from_json(header["run"])
+    except (SafetensorError, OSError, ValueError, RuntimeError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Checkpoint:
     indices = header["keyframe_indices"]
     positions = header.get("keyframe_positions", [-1] * len(indices))  # absent: written before they were kept
