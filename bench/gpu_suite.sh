@@ -2,7 +2,7 @@
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
 #   bash bench/gpu_suite.sh OUT_DIR parity schedules-tiny schedules-small schedules-base process-options ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
-# The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine"),
+# The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (docs/cluster.md),
 # and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/; loops GTSAM's in .whl-loops/.
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.

@@ -112,6 +112,7 @@ class MappingConfig:
     refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
+    graph: Switch = "auto"  # passes at fixed poses with adam: Gaussians and tile intersections at a fixed capacity, each step replayed as a CUDA graph (auto: on CUDA; on the CPU the same steps, ungraphed)
 
 
 @dataclass(frozen=True)

@@ -85,11 +85,18 @@ def tile_ranges(means2d: torch.Tensor, radii: torch.Tensor, grid: TileGrid) -> t
     size = float(grid.tile_size)
     centre = means2d.detach() / size
     reach = radii.to(centre.dtype) / size
-    limit = torch.tensor([grid.tiles_x, grid.tiles_y], device=means2d.device)
-    first = torch.minimum(torch.floor(centre - reach).clamp(min=0), limit).long()
-    end = torch.minimum(torch.ceil(centre + reach).clamp(min=0), limit).long()
+    first = _clamped_to_grid(torch.floor(centre - reach), grid)
+    end = _clamped_to_grid(torch.ceil(centre + reach), grid)
     drawn = (radii > 0).all(-1, keepdim=True)
     return first, torch.where(drawn, end, first)
+
+
+def _clamped_to_grid(tiles: torch.Tensor, grid: TileGrid) -> torch.Tensor:
+    """[..., 2] tile coordinates (x, y) clamped to [0, tiles_x] and [0, tiles_y], int64 (no
+    tensor made from host values: that would be a copy, which a graph cannot record)."""
+    x = tiles[..., 0].clamp(min=0, max=grid.tiles_x)
+    y = tiles[..., 1].clamp(min=0, max=grid.tiles_y)
+    return torch.stack([x, y], -1).long()
 
 
 def intersect_tiles(

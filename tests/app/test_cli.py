@@ -16,7 +16,7 @@ from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
 from pipeline.extras import unavailable_extra
 from pipeline.io.files.trajectory import read_tum_trajectory
-from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.sources.datasets.loader import open_dataset
 
 
@@ -131,11 +131,11 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
 
     camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
     assert (camera["width"], camera["height"]) == (64, 48)
-    for fmt, default in EXPORT_FORMATS.items():
-        if fmt == "mesh" and unavailable_extra("open3d"):
-            continue  # the mesh extra is absent or cannot load (tests/io/outputs/test_exports.py says why)
+    for fmt, exporter in EXPORTERS.items():
+        if exporter.NEEDS is not None and unavailable_extra(exporter.NEEDS):
+            continue  # its extra is absent or cannot load (tests/io/outputs/test_exports.py says why)
         assert main(["export", str(folder), "--to", fmt]) == 0
-        assert (folder / default).exists(), fmt
+        assert (folder / exporter.DEFAULT_NAME).exists(), fmt
 
 
 @pytest.mark.slow

@@ -36,8 +36,10 @@ def test_the_pinned_side_stream_upload_equals_a_plain_copy() -> None:
     for frame, upload in zip(frames, uploaded):
         got = upload.wait()
         want = host_frame_tensors(frame)
-        for name in ("color", "depth", "intrinsics", "c2w_gt"):
+        for name in ("depth", "intrinsics", "c2w_gt"):
             assert torch.equal(getattr(got, name).cpu(), getattr(want, name)), name
+        # The same bytes, divided by 255 on the GPU and on the CPU: equal to the last bit or one off.
+        torch.testing.assert_close(got.color.cpu(), want.color, rtol=0, atol=2**-23)
 
 
 def _exact_renderer(gaussians: object, camera: Camera) -> RenderOutput:

@@ -29,7 +29,7 @@ from pipeline.io.files.folders import inside
 from pipeline.io.files.g2o import G2oEdge, g2o_text
 from pipeline.io.files.trajectory import tum_trajectory_text
 from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
 from pipeline.io.outputs.exports_record import ExportsRecord, text_of
 from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
@@ -52,7 +52,7 @@ RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
 MARKER_FORMAT = "gsplatam.run"
 # The folders a run or an export fills, with what it writes into each (globs in the folder).
-FILLED_FOLDERS = {RECORDING: RECORDING_FILES, FORMATS["nerfstudio"]: NERFSTUDIO_FILES}
+FILLED_FOLDERS = {RECORDING: RECORDING_FILES, EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES}
 
 
 class RunFolder:
@@ -77,7 +77,8 @@ class RunFolder:
         self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
         self.marker = path / MARKER  # this is a run folder of gsplatam (`--overwrite` acts on no other)
         self.lock = path / LOCK_NAME  # held while a process writes the folder (run_lock.py)
-        self.exports = ExportsRecord(path, FORMATS)  # each export's path and the map it came from
+        defaults = {fmt: exporter.DEFAULT_NAME for fmt, exporter in EXPORTERS.items()}
+        self.exports = ExportsRecord(path, defaults)  # each export's path and the map it came from
         self.exports_record = self.exports.path
         self._frames_file: IO[str] | None = None
 
@@ -132,7 +133,7 @@ class RunFolder:
 
     def export(self, fmt: str) -> Path:
         """Where `gsplatam export --to fmt` writes by default."""
-        return self.path / FORMATS[fmt]
+        return self.path / EXPORTERS[fmt].DEFAULT_NAME
 
     def recorded(self) -> bool:
         """Whether the folder holds a live session's recording (a dataset `gsplatam run` reads)."""
@@ -140,7 +141,7 @@ class RunFolder:
 
     def earlier_run(self) -> list[str]:
         """The names of what an earlier run (or an export of it) left here; [] for none."""
-        names = [*RESULTS, RECORDING, *FORMATS.values()]
+        names = [*RESULTS, RECORDING, *(e.DEFAULT_NAME for e in EXPORTERS.values())]
         return [name for name in dict.fromkeys(names) if (self.path / name).exists()]
 
     def remove_earlier_run(self) -> None:
@@ -167,7 +168,7 @@ class RunFolder:
         """The temporary files and folders this tool left in the folder (a kill mid-write): those
         of its prefix, and those an earlier version named after a file of a run (a user's own
         `.notes.tmp` is neither)."""
-        names = [*RESULTS, self.config.name, MARKER, RECORDING, *FORMATS.values()]
+        names = [*RESULTS, self.config.name, MARKER, RECORDING, *(e.DEFAULT_NAME for e in EXPORTERS.values())]
         patterns = [f"{TEMPORARY_PREFIX}*.tmp", *(p for name in names for p in temporaries_of(name))]
         return {path for pattern in patterns for path in self.path.glob(pattern)}
 
