@@ -323,6 +323,30 @@ def test_a_live_session_whose_mapping_process_dies_saves_every_frame_and_does_no
     assert "is a live run" in capsys.readouterr().err and "synthetic room" not in caplog.text
 
 
+@pytest.mark.slow
+def test_a_second_signal_stops_waiting_for_a_stopped_mapping_process_and_keeps_what_is_complete(
+    replica_seq: Path,
+) -> None:
+    """The mapping process stopped (SIGSTOP) with a frame handed to it: after stop_waiting (what a
+    second signal calls) nothing waits for it any more; the checkpoint holds every frame tracked,
+    the map lacks the frame it never took, and it is no failure (the user asked)."""
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:3]
+    slam = _process_slam([], live=False)
+    try:
+        for frame in frames[:2]:
+            slam.step(frame)
+        slam.finish(0)  # mapping took both
+        os.kill(slam.mapping.process.pid, signal.SIGSTOP)
+        slam.step(frames[2])  # handed over into a free slot, never taken
+        assert slam.unmapped() == [2]
+        slam.stop_waiting()
+        assert slam.finish(0) == 0
+        checkpoint = slam.checkpoint()
+        assert checkpoint.frames_done == 3 and slam.failure == ""
+    finally:
+        slam.close()  # kills the stopped process
+
+
 def test_a_backend_timeout_of_0_is_refused_before_anything_is_written(
     replica_seq: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
