@@ -25,6 +25,10 @@ for part in "$@"; do
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     gpu-tests) python3 -m pytest tests/gpu -o addopts="" -p no:cacheprovider -q -rs 2>&1 | tee "$out/gpu_tests.txt" | tail -n 30 ;;
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
+    graph) for g in on off; do  # graphed mapping passes against eager ones, side by side in one call
+             bench "$tum" synthetic-tum --presets tiny --variants sequential,process --set synthetic.frames=100 \
+               --set mapping.graph=$g --stem graph_$g
+           done ;;
     presets-fast) bench synthetic synthetic-tum "$tum" --presets tiny,small --stem presets_fast ;;
     presets-base) bench synthetic --presets base --stem presets_base_synthetic
                   bench "$tum" --presets base,tum --stem presets_slow_tum ;;

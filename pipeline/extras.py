@@ -24,6 +24,8 @@ EXTRA_OF_MODULE = {
     "rerun": "rerun",
     "gtsam": "loops",
     "gsply": "spz",
+    "pyrealsense2": "realsense",
+    "rosbags": "rosbag",
 }
 
 # A system library an extra's wheel links (the loader's "cannot open shared object file") ->

@@ -8,7 +8,7 @@ from typing import Literal
 
 from pipeline.errors import UserError
 
-DatasetFormat = Literal["auto", "replica", "tum"]
+DatasetFormat = Literal["auto", "replica", "tum", "rosbag"]
 GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
@@ -17,6 +17,7 @@ MapOptimizerKind = Literal["adam", "selective_adam"]
 TrackingMethod = Literal["adam", "align"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
+PoseUse = Literal["initial_guess", "groundtruth", "ignore"]  # what a source's own poses are used for
 
 
 def switched_on(switch: Switch, cuda: bool) -> bool:
@@ -28,14 +29,20 @@ def switched_on(switch: Switch, cuda: bool) -> bool:
 class DatasetConfig:
     """The input sequence on disk and how much of it is used."""
 
-    path: str = ""  # dataset folder (Replica or TUM layout); empty: generate the embedded synthetic room
-    format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files
+    path: str = ""  # dataset folder (Replica or TUM layout) or bag (ROS 1 .bag, RealSense .bag, ROS 2 folder, .db3, .mcap); empty: generate the embedded synthetic room
+    format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files (a bag: rosbag)
     width: int = 0  # working width in pixels; 0: native size, else resized (colour linear, depth nearest)
     height: int = 0  # working height in pixels (set with width)
     start: int = 0  # first frame used
     end: int = -1  # frame after the last one used (exclusive); -1: to the end
     stride: int = 1  # use every Nth frame
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels at the stored size; empty: from the layout
+    color_topic: str = ""  # a bag's colour images (sensor_msgs/Image or CompressedImage); empty: the only one
+    depth_topic: str = ""  # a bag's depth images (16UC1 millimetres, 32FC1 metres); empty: the only one
+    camera_info_topic: str = ""  # a bag's sensor_msgs/CameraInfo; empty: the colour topic's, or the only one
+    pose_topic: str = ""  # a bag's poses (PoseStamped, PoseWithCovarianceStamped, Odometry; /tf: set pose_frames); empty: the only one, if any
+    pose_frames: tuple[str, ...] = ()  # /tf's world and camera frames, e.g. map,camera_optical; empty: no /tf pose
+    pose_use: PoseUse = "groundtruth"  # a bag's poses: the reference for the ATE, tracking's starting guess, or ignored
 
 
 # The embedded default scene (width, height, frames): full Replica size on a GPU, a small one a
@@ -220,9 +227,6 @@ class RunConfig:
     kernel_sample: Switch = "auto"  # the GPU's kernel busy fraction over frames 10-60 (CUPTI; auto: on CUDA)
 
 
-PoseUse = Literal["initial_guess", "groundtruth", "ignore"]
-
-
 @dataclass(frozen=True)
 class LiveConfig:
     """The `serve` daemon and its live sources."""
@@ -297,3 +301,4 @@ DATASET_DEFAULTS: dict[str, dict[str, float]] = {
     "replica": {"tracking.lr_rotation": 0.0004, "mapping.scene_radius_divisor": 3.0},
     "tum": {"tracking.lr_rotation": 0.002, "mapping.scene_radius_divisor": 2.0},
 }
+DATASET_DEFAULTS["rosbag"] = DATASET_DEFAULTS["tum"]  # a bag is a real depth sensor's, as TUM's
