@@ -116,8 +116,7 @@ class MappingProcess:
     def stop_waiting(self) -> None:
         """Wait for the mapping process no more (a second signal): every wait on it ends at once
         with MappingProcessFailed, and what is complete is used. Safe in a signal handler."""
-        self.abandoned = True
-        self.stop_refining.set()
+        self.abandoned = True  # (not stop_refining.set(): its lock is not reentrant; close() ends the process)
         self._done.put(None)  # SimpleQueue.put is reentrant: a handler may call it during a get
 
     def unmapped(self) -> list[int]:
