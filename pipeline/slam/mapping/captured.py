@@ -173,7 +173,9 @@ class CapturedMapping:
 
     def _record(self) -> None:
         """Warm up on a side stream (compiled code settles, Adam's state is made), then record one
-        step. The warm-up steps move the buffers' contents; the pass loads its map afterwards."""
+        step. The warm-up steps move the buffers' contents; the pass loads its map afterwards.
+        Recording is `thread_local`: the pipeline's other threads (the upload's side-stream
+        copies) go on meanwhile, which the global mode refuses."""
         assert self._shape is not None
         views = self._shape.views
         side = torch.cuda.Stream()
@@ -183,7 +185,7 @@ class CapturedMapping:
                 self._step(views)
         torch.cuda.current_stream().wait_stream(side)
         self._graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self._graph):
+        with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):  # other threads upload meanwhile
             self._step(views)
         self.rerecorded += 1
 

@@ -76,7 +76,7 @@ class ProcessSplaTAM:
     @property
     def poses(self) -> list[torch.Tensor]:
         """[4, 4] camera-to-world per frame tracked, the keyframes' as mapping refined them."""
-        return self.frontend.poses_with(self._keyframes())
+        return self.frontend.trajectory.poses_with(self._keyframes())
 
     def _keyframes(self) -> tuple[KeyframePose, ...]:
         held = self.held
@@ -103,14 +103,12 @@ class ProcessSplaTAM:
         self.mapping.check()
         first = self.frontend.frames_done == 0
         latest = None if first else self.mapping.hold_newest(self._first_version)
-        tracked = self.frontend.track(frame, latest)
+        tracked, result = self.frontend.track(frame, latest)
         if first:
-            self._scene_radius = scene_radius_of(frame.depth, self.config)
+            self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
-        result = tracked.result
-        position = self.frontend.frames_done - 1
         try:
-            result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
+            result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last)
             if first and result.mapped:
                 self.mapping.hold_newest(self._first_version)
         except MappingProcessFailed:  # the frame is tracked and kept; the next one is refused
@@ -172,7 +170,7 @@ class ProcessSplaTAM:
         self._scene_radius = saved.mapping.scene_radius
         self._intrinsics = saved.mapping.intrinsics
         self._first_version = self.mapping.newest_version()
-        self.frontend.follow(self.mapping.hold_newest(self._first_version).keyframes)
+        self.frontend.trajectory.follow(self.mapping.hold_newest(self._first_version).keyframes)
 
     def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders
