@@ -168,6 +168,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "keyframes_psnr_before_final_db": before.keyframes_psnr_db if before else None,
         "ssim": render.ssim if render else None,
         "depth_l1_cm": render.depth_l1_cm if render else None,
+        "depth_rmse_cm": render.depth_rmse_cm if render else None,
         "lost_frames": metrics.lost_frames,
         "unmapped_frames": metrics.unmapped_frames,
         "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
@@ -256,7 +257,7 @@ COLUMNS = [
     ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
-    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
+    ("depth_l1_cm", "{:.2f}"), ("depth_rmse_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
     ("ate_before_loops_cm", "{:.2f}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"), ("loops_closed", "{}"),
     ("loop_search_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
 ]  # fmt: skip

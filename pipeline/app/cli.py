@@ -9,7 +9,7 @@ import os
 import signal
 import sys
 from types import FrameType
-from typing import NoReturn, Protocol
+from typing import Any, NoReturn, Protocol
 
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -25,7 +25,9 @@ from pipeline.app.commands import (
     synth,
     view,
 )
+from pipeline.app.commands.options import SETTINGS_EPILOG, settings_epilog
 from pipeline.app.logs import configure_logging
+from pipeline.config.choices import did_you_mean, nearest
 from pipeline.errors import MappingProcessFailed, StageFailure, UserError
 from pipeline.extras import missing_extra
 
@@ -62,6 +64,22 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
+    def format_help(self) -> str:
+        if self.epilog == SETTINGS_EPILOG:
+            self.epilog = settings_epilog()
+        return super().format_help()
+
+    def _check_value(self, action: argparse.Action, value: Any) -> None:
+        """A value outside an option's choices, answered with the nearest ones (did you mean)."""
+        choices = action.choices
+        if choices is not None and value not in choices:
+            names = [str(c) for c in choices]
+            hint = did_you_mean(nearest(str(value), names))
+            listed = ", ".join(names)
+            raise argparse.ArgumentError(
+                action, f"invalid choice: '{value}'" + (f": {hint}" if hint else "") + f" (choose from {listed})"
+            )
+
 
 def _common_options() -> Parser:
     """Options every command takes: progress bars and how much it logs."""
@@ -87,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     common = _common_options()
     for name, command in COMMANDS.items():
-        command.add_arguments(sub.add_parser(name, help=command.HELP, parents=[common]))
+        # the description and epilog as written (a command's list of settings keeps its lines)
+        formatter = argparse.RawDescriptionHelpFormatter
+        command.add_arguments(sub.add_parser(name, help=command.HELP, parents=[common], formatter_class=formatter))
     return parser
 
 
