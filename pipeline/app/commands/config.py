@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.app.commands.options import requested_config, SETTINGS_EPILOG
+from pipeline.app.commands.options import SETTINGS_EPILOG, requested_config
 
 HELP = "list every setting: key, type, default and meaning"
 

@@ -8,11 +8,11 @@ from pathlib import Path
 
 from pipeline.app.commands.options import (
     LIVE_SPECS,
+    SETTINGS_EPILOG,
     add_config_options,
     add_run_folder_options,
     add_viewer_options,
     requested_config,
-    SETTINGS_EPILOG,
 )
 from pipeline.errors import UserError
 from pipeline.io.sources.cameras import camera_of
