@@ -17,9 +17,11 @@ from pipeline import __version__
 from pipeline.app.commands import (
     bench,
     config,
+    download,
     export,
     fake_nerfcapture,
     fake_record3d,
+    render,
     run,
     serve,
     synth,
@@ -53,6 +55,8 @@ COMMANDS: dict[str, Command] = {
     "fake-nerfcapture": fake_nerfcapture,
     "view": view,
     "export": export,
+    "render": render,
+    "download": download,
     "config": config,
 }
 

@@ -112,10 +112,10 @@ def _one_key(config: Config, key: str, sections: dict[str, Any]) -> SectionDoc:
     if section and section not in sections:
         raise unknown_key(key)
     (found,) = [s for s in config_sections(config, section or None) if s.name == section]
-    keys = [k for k in found.keys if k.key == key]
-    if not keys:
+    docs = [k for k in found.keys if k.key == key]
+    if not docs:
         raise unknown_key(key)
-    return SectionDoc(found.name, found.summary, keys)
+    return SectionDoc(found.name, found.summary, docs)
 
 
 LINE_WIDTH = 100  # characters: longer lines are wrapped, their continuation indented

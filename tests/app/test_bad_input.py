@@ -110,11 +110,11 @@ def _ply(path: Path) -> Path:
 @pytest.mark.parametrize(
     "damage, message",
     [
-        (lambda raw: raw[:-100], "is truncated: its header announces 20 Gaussians"),
-        (lambda raw: raw.replace(b"element vertex 20", b"element vertex many"), "malformed header line"),
-        (lambda raw: raw.replace(b"element vertex 20\n", b""), "no 'element vertex' line"),
-        (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "malformed header"),
-        (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "only binary little-endian"),
+        (lambda raw: raw[:-100], "element 'vertex': row 18: early end-of-file"),
+        (lambda raw: raw.replace(b"element vertex 20", b"element vertex many"), "expected integer count"),
+        (lambda raw: raw.replace(b"element vertex 20\n", b""), "is not a PLY file that can be read"),
+        (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "same name"),
+        (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "no 'element vertex' line"),
         (lambda raw: raw[:-4] + np.float32(np.nan).tobytes(), "holds NaN or infinite values"),
     ],
 )
