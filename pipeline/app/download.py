@@ -10,7 +10,8 @@ from pathlib import Path
 from pipeline.errors import UserError
 from pipeline.io.files.download import fetched
 from pipeline.io.files.folders import atomic_folder, make_folder
-from pipeline.io.sources.datasets.public import MARKER, sequence_of, unpack
+from pipeline.io.sources.datasets.catalogue import sequence_of
+from pipeline.io.sources.datasets.public import MARKER, unpack
 
 log = logging.getLogger("gsplatam")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.io.sources.datasets.public import KINDS
+from pipeline.io.sources.datasets.catalogue import KINDS
 
 HELP = "fetch a public sequence (TUM RGB-D, Replica, 7-Scenes) into a folder run reads"
 
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.io.sources.datasets.public import catalogue
+    from pipeline.io.sources.datasets.catalogue import catalogue
 
     if args.name is None:
         names = list(catalogue()[args.kind])

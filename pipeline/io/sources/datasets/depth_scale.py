@@ -42,8 +42,8 @@ def check_depth_scale(dataset: Dataset, config: DatasetConfig) -> None:
     else:
         origin = "set" if config.depth_scale else f"{dataset.format}'s default"
         where = f"dataset.depth_scale={scale:g} ({origin})"
-    found = f"the depth of the first {min(FIRST_FRAMES, len(dataset))} frames has a median of {median:.3g} m at {where}"
-    log.info("depth: %s", found.removeprefix("the depth of "))
+    found = f"the first {min(FIRST_FRAMES, len(dataset))} frames' depth has a median of {median:.3g} m at {where}"
+    log.info("depth: %s", found)
     advice = "" if floats else _advice(median, scale)
     if config.depth_range_m:
         near, far = config.depth_range_m
