@@ -349,3 +349,15 @@ def test_every_ply_variant_reads_back_as_the_map(variant: str, tmp_path) -> None
         return
     for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
         torch.testing.assert_close(getattr(back, name), getattr(g, name), atol=1e-5, rtol=1e-5)
+
+
+def test_the_batched_quaternion_conversion_is_the_single_one_row_by_row() -> None:
+    """Trajectory files convert all poses at once; tracking converts one: the same numbers."""
+    from pipeline.geometry import rotmats_to_quats
+
+    gen = torch.Generator().manual_seed(2)
+    rotations = quat_to_rotmat(torch.randn(500, 4, generator=gen, dtype=torch.float64))
+    rotations = torch.cat([rotations, torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))[None]])
+    batched = rotmats_to_quats(rotations)
+    assert torch.equal(batched, torch.stack([rotmat_to_quat(r) for r in rotations]))
+    assert (batched[:, 0] >= 0).all() and torch.allclose(quat_to_rotmat(batched), rotations, atol=1e-12)

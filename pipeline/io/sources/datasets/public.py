@@ -16,6 +16,7 @@ every member) is checked as it is unpacked, and its SHA-256 is recorded at its d
 
 from __future__ import annotations
 
+import gzip
 import json
 import shutil
 import tarfile
@@ -55,7 +56,7 @@ def unpack(sequence: Sequence, archive: Path, staged: Path) -> None:
                 _unzip(bundle, sequence.member, staged, archive)
         else:
             _seven_scenes(archive, sequence.member, staged)
-    except (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+    except (tarfile.TarError, zipfile.BadZipFile, gzip.BadGzipFile, EOFError, zlib.error) as exc:
         raise DataError(f"{archive} is damaged ({exc}): remove it and run the command again") from None
     marker = {"kind": sequence.kind, "name": sequence.name, "url": sequence.url}
     atomic_write_text(staged / MARKER, json.dumps(marker, indent=2) + "\n")
