@@ -36,10 +36,7 @@ class DatasetConfig:
     stride: int = 1  # use every Nth frame
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels at the stored size; empty: from the layout
     depth_scale: float = 0.0  # depth image units per metre; 0: by layout (TUM 5000, Replica 6553.5); millimetres: 1000
-    depth_range_m: tuple[float, ...] = (
-        0.1,
-        20.0,
-    )  # the first frames' median depth must lie within, or the run stops; empty: no check
+    depth_range_m: tuple[float, ...] = (0.1, 20.0)  # first frames' median depth outside: the run stops; (): no check
 
 
 # The embedded default scene (width, height, frames): full Replica size on a GPU, a small one a

@@ -144,7 +144,7 @@ def test_millimetre_depth_at_tums_scale_is_named_with_the_setting_that_fixes_it(
     assert "median of 0.49 m at dataset.depth_scale=5000 (tum's default)" in warning
     assert "millimetres" in warning and "--set dataset.depth_scale=1000 (the median is then 2.45 m)" in warning
     caplog.clear()
-    with caplog.at_level("INFO", "gsplatam"):
+    with caplog.at_level("DEBUG", "gsplatam"):
         right = DatasetConfig(path=str(path), depth_scale=1000.0)
         check_depth_scale(open_dataset(right), right)
     assert not [r for r in caplog.records if r.levelname == "WARNING"]

@@ -29,7 +29,7 @@ CONVENTIONS = {  # depth units per metre -> what they are
 
 
 def check_depth_scale(dataset: Dataset, config: DatasetConfig) -> None:
-    """Read the depth of the first frames at `dataset.depth_scale` and log its median; UserError
+    """Read the depth of the first frames at `dataset.depth_scale` and log its median (debug); UserError
     where that median lies outside `config.depth_range_m`, a warning where the scale is the
     layout's default (not set) and another usual one gives a more usual median. Float depth
     images are metres: no scale applies to them."""
@@ -43,7 +43,7 @@ def check_depth_scale(dataset: Dataset, config: DatasetConfig) -> None:
         origin = "set" if config.depth_scale else f"{dataset.format}'s default"
         where = f"dataset.depth_scale={scale:g} ({origin})"
     found = f"the first {min(FIRST_FRAMES, len(dataset))} frames' depth has a median of {median:.3g} m at {where}"
-    log.info("depth: %s", found)
+    log.debug("depth: %s", found)
     advice = "" if floats else _advice(median, scale)
     if config.depth_range_m:
         near, far = config.depth_range_m
