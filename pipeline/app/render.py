@@ -28,7 +28,7 @@ def render_video(
 ) -> tuple[Path, int]:
     """The fly-through of the run in `run_dir` rendered on `device` into `output` (default: the
     run folder's VIDEO), seen from `back_m` metres behind each pose; -> (its path, frames)."""
-    folder = RunFolder.existing(run_dir)
+    folder = RunFolder.existing(run_dir.resolve())  # outputs/latest: the run it points at
     checkpoint, _ = folder.read_checkpoint()
     target = _checked_target(output or folder.path / VIDEO)
     poses = checkpoint.poses[::stride].double().numpy()
