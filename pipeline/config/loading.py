@@ -272,6 +272,10 @@ def validate(config: Config) -> None:
         ),
         (dataset.end == -1 or dataset.end > dataset.start, "dataset.end must be -1 (to the end) or > dataset.start"),
         (config.run.renders >= 0, "run.renders must be >= 0"),
+        (
+            "/" not in config.run.name and config.run.name not in (".", ".."),
+            f"run.name (--name) must be a folder name under run.output, without '/', not '{config.run.name}'",
+        ),
         (mapping.final_iters >= 0, "mapping.final_iters must be >= 0"),
         (mapping.refine_pose_lr >= 0, "mapping.refine_pose_lr must be >= 0 (a learning rate)"),
         (_in_unit(mapping.ssim_weight), "mapping.ssim_weight must be in [0, 1]"),

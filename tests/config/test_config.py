@@ -107,6 +107,7 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["dataset.depth_range_m=5,1"], "dataset.depth_range_m takes two depths"),
         (["dataset.start=5", "dataset.end=5"], "dataset.end must be -1 (to the end) or > dataset.start"),
         (["run.renders=-1"], "run.renders must be >= 0"),
+        (["run.name=../elsewhere"], "run.name (--name) must be a folder name under run.output, without '/'"),
         (["dataset.intrinsics=0,500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
         (["dataset.intrinsics=500,-500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
         (["live.status_port=65536"], "live.status_port must be a port, 1 to 65535"),
