@@ -2,7 +2,7 @@
 # The GPU suite on a bare device machine: install the carried wheels, then run the named parts.
 # Usage (from the repo root, with .device/ holding the gsplat wheel and .data/ the TUM sample):
 #   bash bench/gpu_suite.sh OUT_DIR parity schedules-tiny schedules-small schedules-base process-options ssim syncs costs tiny small base tum presets-fast presets-base presets-tum types pipeline ablations profile memory viewer tracker exports live-warmup
-# The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (README, "Past one machine"),
+# The ray parts (ray-live, ray-matrix) also need Ray's wheels in .whl-ray/ (docs/cluster.md),
 # and ray-live's NeRFCapture phones cyclonedds' wheel in .whl-dds/; the live parts aiortc's in .whl-live/; loops GTSAM's in .whl-loops/.
 # Results go to a work folder and, when the suite ends (or is stopped), into OUT_DIR/results.tar.gz:
 # one file, since a device call returns at most 8 files.
@@ -23,6 +23,12 @@ for part in "$@"; do
   echo "== $part (suite at ${SECONDS}s)"
   case $part in
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    gpu-tests) python3 -m pytest tests/gpu -o addopts="" -p no:cacheprovider -q -rs 2>&1 | tee "$out/gpu_tests.txt" | tail -n 30 ;;
+    capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
+    graph) for g in on off; do  # graphed mapping passes against eager ones, side by side in one call
+             bench "$tum" synthetic-tum --presets tiny --variants sequential,process --set synthetic.frames=100 \
+               --set mapping.graph=$g --stem graph_$g
+           done ;;
     presets-fast) bench synthetic synthetic-tum "$tum" --presets tiny,small --stem presets_fast ;;
     presets-base) bench synthetic --presets base --stem presets_base_synthetic
                   bench "$tum" --presets base,tum --stem presets_slow_tum ;;

@@ -12,7 +12,7 @@ matrix: the same bench matrix one cell after the other (`bench`), then through R
 
 Writes DIR/<stem>.json and DIR/<stem>.md (and each matrix's own JSON and table). `--phone
 nerfcapture` (DDS, one domain per phone) needs no video codec: on the device machine its wheels
-and Ray's fit one call (README, "Past one machine").
+and Ray's fit one call (docs/cluster.md).
 """
 
 from __future__ import annotations

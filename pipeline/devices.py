@@ -29,7 +29,7 @@ def live_max_width(device: torch.device) -> int:
 
 def default_preset(device: torch.device, live: bool = False) -> str:
     """base on a GPU for datasets; tiny on the CPU, and for live input everywhere (the only preset
-    near camera rate: see README's performance table)."""
+    near camera rate: see the README's table of presets)."""
     return "base" if device.type == "cuda" and not live else DEFAULT_PRESET_CPU
 
 

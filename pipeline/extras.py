@@ -21,6 +21,8 @@ EXTRA_OF_MODULE = {
     "rerun": "rerun",
     "gtsam": "loops",
     "gsply": "spz",
+    "pyrealsense2": "realsense",
+    "rosbags": "rosbag",
 }
 
 

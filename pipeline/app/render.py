@@ -5,12 +5,12 @@ noted in exports.json as exports are (a `--resume` that moves the map on marks i
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pipeline.app.setup import rendering_on
 from pipeline.errors import OutputError, UserError
 from pipeline.geometry import invert_pose
 from pipeline.io.files.folders import make_folder
@@ -59,7 +59,8 @@ def _views(
     """The map rendered from each camera-to-world pose [N, 4, 4] (moved `back_m` behind it),
     one [H, W, 3] uint8 image at a time."""
     config, camera = folder.read_config(), folder.read_intrinsics()
-    renderer = make_renderer(rendering_on(config, device), config.gaussians, device)
+    # the backend that suits `device` (the run's may have been another machine's)
+    renderer = make_renderer(replace(config.render, backend="auto"), config.gaussians, device)
     k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
     gaussians = copied(gaussians_on_host, device)
     for pose in poses:

@@ -18,13 +18,12 @@ import numpy as np
 import torch
 
 from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_metrics import LoopRecord, RunMetrics, TimingRecord
 from pipeline.runtime import RuntimeReport
 from pipeline.stages.frame_log import FrameLog
 
-EXPORT_NEEDS = {"mesh": "open3d", "spz": "gsply"}  # export format -> the module it needs (an extra's)
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
@@ -130,7 +129,8 @@ def files_and_next_steps(folder: RunFolder) -> str:
     """The end of a run's output: every file in its run folder, then the commands that take it further."""
     root = folder.path
     exports = folder.exports_made()
-    derived = {folder.exports_record.name, *FORMATS.values(), *(str(e.get("path")) for e in exports.values())}
+    defaults = (exporter.DEFAULT_NAME for exporter in EXPORTERS.values())
+    derived = {folder.exports_record.name, *defaults, *(str(e.get("path")) for e in exports.values())}
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file() and not p.name.startswith("."))
     files = [p for p in files if p.parts[0] not in derived and str(p) not in derived]
     shown = [str(p) for p in files if len(p.parts) == 1]
@@ -151,7 +151,7 @@ def next_steps(folder: RunFolder) -> list[str]:
     lines = [_needing("viser", f"{gsplatam} view {root}")]
     if folder.groundtruth.is_file():
         lines.append(evo_command(folder) + "   # the same ATE, by evo")
-    lines += [_needing(EXPORT_NEEDS.get(fmt), f"{gsplatam} export {root} --to {fmt}") for fmt in FORMATS]
+    lines += [_needing(exporter.NEEDS, f"{gsplatam} export {root} --to {fmt}") for fmt, exporter in EXPORTERS.items()]
     if folder.recorded():
         lines.append(f"{gsplatam} run {shlex.quote(str(folder.recording))}   # the live session again, offline")
     return [f"  {line}" for line in lines]

@@ -11,14 +11,7 @@ from typing import Any
 
 import torch
 
-from pipeline.config import (
-    Config,
-    RenderConfig,
-    validate,
-    with_absolute_dataset_path,
-    with_dataset_defaults,
-    with_value,
-)
+from pipeline.config import Config, validate, with_absolute_dataset_path, with_dataset_defaults, with_value
 from pipeline.render import resolve_backend
 
 LIVE_LAYOUT = "tum"  # a phone's depth is a real sensor's, as TUM's: its per-dataset values
@@ -66,9 +59,3 @@ def _with_live_bounds(config: Config) -> Config:
     if not config.mapping.max_gaussians:
         config = replace(config, mapping=replace(config.mapping, max_gaussians=config.live.max_gaussians))
     return config
-
-
-def rendering_on(config: Config, device: torch.device) -> RenderConfig:
-    """A finished run's render settings with the backend that suits `device`: an export renders
-    where it runs, which need not be where the run did."""
-    return replace(config.render, backend=resolve_backend(replace(config.render, backend="auto"), device))

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-DatasetFormat = Literal["auto", "replica", "tum"]
+DatasetFormat = Literal["auto", "replica", "tum", "rosbag"]
 GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
@@ -15,6 +15,7 @@ MapOptimizerKind = Literal["adam", "selective_adam"]
 TrackingMethod = Literal["adam", "align"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
+PoseUse = Literal["initial_guess", "groundtruth", "ignore"]  # what a source's own poses are used for
 
 
 def switched_on(switch: Switch, cuda: bool) -> bool:
@@ -26,9 +27,9 @@ def switched_on(switch: Switch, cuda: bool) -> bool:
 class DatasetConfig:
     """The input sequence on disk and how much of it is used."""
 
-    path: str = ""  # dataset folder (Replica or TUM layout); empty: generate the embedded synthetic room
+    path: str = ""  # dataset folder (Replica or TUM layout) or bag (ROS 1 .bag, RealSense .bag, ROS 2 folder, .db3, .mcap); empty: generate the embedded synthetic room
     path_as_given: str = ""  # the folder as the command line named it (a run records it; path is made absolute)
-    format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files
+    format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files (a bag: rosbag)
     width: int = 0  # working width in pixels; 0: native size, else resized (colour linear, depth nearest)
     height: int = 0  # working height in pixels (set with width)
     start: int = 0  # first frame used
@@ -37,6 +38,12 @@ class DatasetConfig:
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels at the stored size; empty: from the layout
     depth_scale: float = 0.0  # depth image units per metre; 0: by layout (TUM 5000, Replica 6553.5); millimetres: 1000
     depth_range_m: tuple[float, ...] = (0.1, 20.0)  # first frames' median depth outside: the run stops; (): no check
+    color_topic: str = ""  # a bag's colour images (sensor_msgs/Image or CompressedImage); empty: the only one
+    depth_topic: str = ""  # a bag's depth images (16UC1 millimetres, 32FC1 metres); empty: the only one
+    camera_info_topic: str = ""  # a bag's sensor_msgs/CameraInfo; empty: the colour topic's, or the only one
+    pose_topic: str = ""  # a bag's poses (PoseStamped, PoseWithCovarianceStamped, Odometry; /tf: set pose_frames); empty: the only one, if any
+    pose_frames: tuple[str, ...] = ()  # /tf's world and camera frames, e.g. map,camera_optical; empty: no /tf pose
+    pose_use: PoseUse = "groundtruth"  # a bag's poses: the reference for the ATE, tracking's starting guess, or ignored
 
 
 # The embedded default scene (width, height, frames): full Replica size on a GPU, a small one a
@@ -113,6 +120,7 @@ class MappingConfig:
     refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
+    graph: Switch = "auto"  # passes at fixed poses with adam: Gaussians and tile intersections at a fixed capacity, each step replayed as a CUDA graph (auto: on CUDA; on the CPU the same steps, ungraphed)
 
 
 @dataclass(frozen=True)
@@ -217,9 +225,6 @@ class RunConfig:
     kernel_sample: Switch = "auto"  # the GPU's kernel busy fraction over frames 10-60 (CUPTI; auto: on CUDA)
 
 
-PoseUse = Literal["initial_guess", "groundtruth", "ignore"]
-
-
 @dataclass(frozen=True)
 class LiveConfig:
     """The `serve` daemon and its live sources."""
@@ -294,6 +299,8 @@ DATASET_DEFAULTS: dict[str, dict[str, float]] = {
     "replica": {"tracking.lr_rotation": 0.0004, "mapping.scene_radius_divisor": 3.0, "dataset.depth_scale": 6553.5},
     "tum": {"tracking.lr_rotation": 0.002, "mapping.scene_radius_divisor": 2.0, "dataset.depth_scale": 5000.0},
 }
+# a bag is a real depth sensor's, as TUM's; its depth comes in its messages' own units
+DATASET_DEFAULTS["rosbag"] = {k: v for k, v in DATASET_DEFAULTS["tum"].items() if k != "dataset.depth_scale"}
 
 # The preset of a run on the CPU (and of live input) where none is named.
 DEFAULT_PRESET_CPU = "tiny"

@@ -13,17 +13,21 @@ import torch
 
 from pipeline.config import GaussianConfig, RenderBackend, RenderConfig
 from pipeline.errors import UserError
-from pipeline.render.reference import render_reference
+from pipeline.render.intersections import TileIntersections
+from pipeline.render.reference import render_reference, render_reference_views
 from pipeline.render.types import Camera, Gaussians, RenderOutput
 
 Renderer = Callable[[Gaussians, Camera], RenderOutput]
 ViewsRenderer = Callable[[Gaussians, list[Camera]], list[RenderOutput]]  # several cameras of one size at once
+# Several cameras with their tile intersections at a fixed capacity (an int): no host read, so a
+# CUDA graph can record it; the intersections say whether the capacity held them all.
+CapacityRenderer = Callable[[Gaussians, list[Camera], int], tuple[list[RenderOutput], TileIntersections]]
 
 FLAT_LOG_SCALE = -9.0  # log-scale of the normal axis when 2D Gaussians run on the reference backend
 
 __all__ = [
-    "Camera", "Gaussians", "RenderOutput", "Renderer", "ViewsRenderer", "make_renderer", "make_views_renderer",
-    "resolve_backend",
+    "Camera", "CapacityRenderer", "Gaussians", "RenderOutput", "Renderer", "TileIntersections", "ViewsRenderer",
+    "make_capacity_renderer", "make_renderer", "make_views_renderer", "resolve_backend",
 ]  # fmt: skip
 
 
@@ -67,3 +71,17 @@ def make_views_renderer(config: RenderConfig, gaussians: GaussianConfig, device:
         return partial(gsplat_backend.render_gsplat_3d_views, eps2d=config.eps2d)
     single = make_renderer(config, gaussians, device)
     return lambda splats, cameras: [single(splats, camera) for camera in cameras]
+
+
+def make_capacity_renderer(
+    config: RenderConfig, gaussians: GaussianConfig, device: torch.device
+) -> CapacityRenderer | None:
+    """The fixed-capacity render of 3D Gaussians (gsplat's kernels on CUDA, the reference on the
+    CPU, both unpacked); None where there is none (2D Gaussians, `render.packed`)."""
+    if gaussians.kind != "3d" or config.packed:
+        return None
+    if resolve_backend(config, device) == "gsplat":
+        from pipeline.render import gsplat_backend
+
+        return partial(gsplat_backend.render_gsplat_3d_capacity, eps2d=config.eps2d)
+    return partial(render_reference_views, eps2d=config.eps2d)

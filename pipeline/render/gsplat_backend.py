@@ -20,6 +20,7 @@ from typing import Any
 import gsplat
 import torch
 
+from pipeline.render.intersections import TileGrid, TileIntersections, intersect_tiles, phantom_tile_mask
 from pipeline.render.types import Camera, Gaussians, RenderOutput
 
 
@@ -84,3 +85,55 @@ def render_gsplat_2d(gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, p
     )
     radii = _radii_per_gaussian(meta, len(gaussians), packed)
     return _output(colors, alphas, radii, len(gaussians))
+
+
+def render_gsplat_3d_capacity(
+    gaussians: Gaussians, cameras: list[Camera], capacity: int, eps2d: float = 0.3
+) -> tuple[list[RenderOutput], TileIntersections]:
+    """`render_gsplat_3d_views` with no host read: the tile intersections at a fixed `capacity`
+    (`intersections.intersect_tiles`), so the call can be recorded in a CUDA graph.
+
+    The same kernels as `gsplat.rasterization` (classic, unpacked, "RGB+ED") on the same
+    inputs, so the images equal its images while the intersections fit; the returned
+    intersections say whether they did (`overflowed()`, read when convenient)."""
+    from gsplat.cuda._wrapper import fully_fused_projection, isect_offset_encode, rasterize_to_pixels
+
+    first = cameras[0]
+    opacities = torch.sigmoid(gaussians.opacity_logits)
+    radii, means2d, depths, conics, _ = fully_fused_projection(
+        gaussians.means,
+        None,
+        gaussians.quats,
+        gaussians.scales(),
+        torch.stack([camera.w2c for camera in cameras]),
+        torch.stack([camera.intrinsics for camera in cameras]),
+        first.width,
+        first.height,
+        eps2d=eps2d,
+        near_plane=first.near,
+        far_plane=first.far,
+        opacities=opacities,
+    )
+    images, n = depths.shape
+    grid = TileGrid(images, first.width, first.height)
+    hits = intersect_tiles(means2d, radii, depths, grid, capacity)
+    offsets = isect_offset_encode(hits.keys, images, grid.tiles_x, grid.tiles_y + 1)
+    features = torch.cat([gaussians.colors.expand(images, n, 3), depths[..., None]], -1)
+    colors, alphas = rasterize_to_pixels(
+        means2d,
+        conics,
+        features,
+        opacities.expand(images, n),
+        first.width,
+        first.height,
+        grid.tile_size,
+        offsets.reshape(images, grid.tiles_y + 1, grid.tiles_x),
+        hits.flatten_ids,
+        masks=phantom_tile_mask(grid, depths.device),
+    )
+    depth = colors[..., 3:] / alphas.clamp(min=1e-10)
+    outputs = [
+        _output(torch.cat([colors[c : c + 1, ..., :3], depth[c : c + 1]], -1), alphas[c : c + 1], radii[c], n)
+        for c in range(images)
+    ]
+    return outputs, hits

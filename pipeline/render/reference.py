@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.geometry import quat_to_rotmat
+from pipeline.render.intersections import TileGrid, TileIntersections, intersect_tiles, tile_ranges
 from pipeline.render.types import Camera, Gaussians, RenderOutput
 
 TILE = 8
@@ -83,33 +84,28 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs
     return {"means2d": means2d, "conics": conics, "depths": z, "opacities": opacities, "radii": radii}
 
 
+def exact_capacity(means2d: torch.Tensor, radii: torch.Tensor, grid: TileGrid) -> int:
+    """The number of tile intersections (a host read): the capacity that loses nothing."""
+    first, end = tile_ranges(means2d, radii, grid)
+    span = end - first
+    return max(int((span[..., 0] * span[..., 1]).sum()), 1)
+
+
 @torch.no_grad()
-def tile_lists(
-    means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int
-) -> torch.Tensor:
-    """Per-tile Gaussian ids in depth order: [tiles, K] int64, padded with -1."""
-    tiles_x, tiles_y = math.ceil(width / TILE), math.ceil(height / TILE)
-    lo = torch.floor((means2d - radii) / TILE)
-    hi = torch.ceil((means2d + radii) / TILE)
-    limit = torch.tensor([tiles_x, tiles_y], device=means2d.device)
-    lo = torch.minimum(lo.clamp(min=0), limit).long()
-    hi = torch.minimum(hi.clamp(min=0), limit).long()
-    span = (hi - lo) * (radii > 0).all(-1, keepdim=True)
-    counts = span[:, 0] * span[:, 1]
-    gid = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
-    first = torch.cumsum(counts, 0) - counts
-    local = torch.arange(len(gid), device=gid.device) - first[gid]
-    tx = lo[gid, 0] + local % span[gid, 0]
-    ty = lo[gid, 1] + local // span[gid, 0]
-    tile = ty * tiles_x + tx
-    order = torch.argsort(depths[gid], stable=True)
-    order = order[torch.argsort(tile[order], stable=True)]
-    gid, tile = gid[order], tile[order]
-    n_tiles = tiles_x * tiles_y
+def tile_lists(hits: TileIntersections, grid: TileGrid, image: int, n: int) -> torch.Tensor:
+    """One image's per-tile Gaussian ids in depth order, from the sorted intersections of all
+    images (entries past the capacity are lost, as gsplat's rasteriser would lose them):
+    [tiles, K] int64, padded with -1."""
+    kept = min(int(hits.count), hits.capacity)
+    keys, ids = hits.keys[:kept], hits.flatten_ids[:kept].long()
+    mine = (keys >> (32 + grid.tile_bits)) == image
+    tile = (keys[mine] >> 32) & ((1 << grid.tile_bits) - 1)
+    gid = ids[mine] - image * n
+    n_tiles = grid.tiles_x * grid.tiles_y
     per_tile = torch.bincount(tile, minlength=n_tiles)
     width_k = int(per_tile.max()) if len(tile) else 0
     slot = torch.arange(len(tile), device=tile.device) - (torch.cumsum(per_tile, 0) - per_tile)[tile]
-    lists = torch.full((n_tiles, max(width_k, 1)), -1, dtype=torch.long, device=means2d.device)
+    lists = torch.full((n_tiles, max(width_k, 1)), -1, dtype=torch.long, device=keys.device)
     lists[tile, slot] = gid
     return lists
 
@@ -212,13 +208,33 @@ def composite(
     return feat[:height, :width], acc[:height, :width]
 
 
+def render_reference_views(
+    gaussians: Gaussians,
+    cameras: list[Camera],
+    capacity: int | None = None,
+    eps2d: float = 0.3,
+    cutoffs: Cutoffs = GSPLAT,
+) -> tuple[list[RenderOutput], TileIntersections]:
+    """Cameras of one size, their tile intersections at `capacity` entries shared by all (None:
+    exactly as many as there are), as gsplat's fixed-capacity render takes them; what a smaller
+    capacity loses is lost from the images."""
+    first = cameras[0]
+    projs = [project(gaussians, camera, eps2d, cutoffs) for camera in cameras]
+    means2d, radii, depths = (torch.stack([p[key] for p in projs]) for key in ("means2d", "radii", "depths"))
+    grid = TileGrid(len(cameras), first.width, first.height, TILE)
+    hits = intersect_tiles(means2d, radii, depths, grid, capacity or exact_capacity(means2d, radii, grid))
+    outputs = []
+    for image, proj in enumerate(projs):
+        lists = tile_lists(hits, grid, image, len(gaussians))
+        features = torch.cat([gaussians.colors, proj["depths"][:, None]], -1)
+        feat, alpha = composite(proj, features, lists, first.width, first.height, cutoffs)
+        depth = feat[..., 3] / alpha.clamp(min=1e-10)
+        radii_max = proj["radii"].amax(-1)
+        outputs.append(RenderOutput(feat[..., :3], depth, alpha, radii_max, radii_max > 0))
+    return outputs, hits
+
+
 def render_reference(
     gaussians: Gaussians, camera: Camera, eps2d: float = 0.3, cutoffs: Cutoffs = GSPLAT
 ) -> RenderOutput:
-    proj = project(gaussians, camera, eps2d, cutoffs)
-    lists = tile_lists(proj["means2d"], proj["radii"], proj["depths"], camera.width, camera.height)
-    features = torch.cat([gaussians.colors, proj["depths"][:, None]], -1)
-    feat, alpha = composite(proj, features, lists, camera.width, camera.height, cutoffs)
-    depth = feat[..., 3] / alpha.clamp(min=1e-10)
-    radii = proj["radii"].amax(-1)
-    return RenderOutput(feat[..., :3], depth, alpha, radii, radii > 0)
+    return render_reference_views(gaussians, [camera], None, eps2d, cutoffs)[0][0]

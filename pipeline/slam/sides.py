@@ -5,8 +5,9 @@ from __future__ import annotations
 import torch
 
 from pipeline.config import Config, switched_on
-from pipeline.render import Renderer, make_views_renderer
+from pipeline.render import Renderer, make_capacity_renderer, make_views_renderer
 from pipeline.slam.kernels import make_kernels
+from pipeline.slam.mapping.captured import CapturedMapping
 from pipeline.slam.mapping.window import MapSettings
 from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
 
@@ -20,8 +21,14 @@ def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tra
 
 
 def mapping_settings(config: Config, renderer: Renderer, device: torch.device) -> MapSettings:
-    """What mapping needs besides the map: renderers, losses, kernels."""
-    kernels = make_kernels(switched_on(config.run.compile, device.type == "cuda"))
+    """What mapping needs besides the map: renderers, losses, kernels, and the graphed passes
+    where `mapping.graph` asks for them and a fixed-capacity renderer exists."""
+    cuda = device.type == "cuda"
+    kernels = make_kernels(switched_on(config.run.compile, cuda))
     views = make_views_renderer(config.render, config.gaussians, device)
     near, far = config.render.near, config.render.far
-    return MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels)
+    capacity_renderer = make_capacity_renderer(config.render, config.gaussians, device)
+    captured = None
+    if capacity_renderer is not None and switched_on(config.mapping.graph, cuda):
+        captured = CapturedMapping(capacity_renderer, config.mapping, config.loss, kernels, near, far, device)
+    return MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels, captured)

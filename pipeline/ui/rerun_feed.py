@@ -3,7 +3,7 @@
 At a frame boundary (the SLAM-stage observer) only what is cheap is taken: the poses of the
 frames since the last boundary taken and the frame's images at the display size, copied to the
 host (asynchronously on CUDA), and, when a map snapshot is due (`map_every_s`) and none is
-waiting, a device copy of the Gaussians' centres and colours. A thread of its own copies that
+waiting, a device copy of the Gaussians. A thread of its own copies that
 to the host on its own CUDA stream and logs everything (`RerunRecording`). At most QUEUE_FRAMES
 boundaries wait for it; while they do (the logger behind), a frame's images are not logged and
 its pose goes with the next boundary taken, so the trajectory stays whole.
@@ -27,20 +27,12 @@ from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians
 from pipeline.slam.handoff import FrameResult
 from pipeline.slam.view import SlamView
-from pipeline.ui.rerun_recording import RerunRecording
-from pipeline.ui.thumbnail import Thumbnail, as_u8, thumbnail
+from pipeline.ui.rerun_recording import MapSplats, RerunRecording
+from pipeline.ui.thumbnail import Thumbnail, thumbnail
 
 log = logging.getLogger("gsplatam")
 
 QUEUE_FRAMES = 32  # boundaries waiting for the logger at most (images of 320x240: ~0.5 MB each)
-
-
-@dataclass
-class MapPoints:
-    """The map as points, copied on its device at a frame boundary."""
-
-    centres: torch.Tensor  # [N, 3] float32 world metres
-    colors: torch.Tensor  # [N, 3] uint8 RGB
 
 
 @dataclass
@@ -50,7 +42,7 @@ class Boundary:
     first: int  # the position of poses[0] in the trajectory
     poses: torch.Tensor  # [K, 4, 4] camera-to-world on the host: the frames since the last boundary taken
     images: Thumbnail | None  # on the host: the frame's (None: the end of the run)
-    map: MapPoints | None  # when a snapshot was due
+    map: Gaussians | None  # a copy on SLAM's device, when a snapshot was due
     ready: torch.cuda.Event | None  # recorded on SLAM's stream after the copies
 
 
@@ -99,10 +91,11 @@ class RerunFeed:
         self._taken = len(poses)
         return boundary
 
-    def _map_copy(self, gaussians: Gaussians) -> MapPoints:
+    def _map_copy(self, gaussians: Gaussians) -> Gaussians:
         self._map_at = time.monotonic()
         self._map_waiting.set()
-        return MapPoints(gaussians.means.detach().to(torch.float32, copy=True), as_u8(gaussians.colors.detach()))
+        fields = (gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.colors)
+        return Gaussians(*(t.detach().to(torch.float32, copy=True) for t in fields))
 
     def finish(self) -> None:
         """SLAM has stopped: log the poses not logged yet and the final map, due or not."""
@@ -143,16 +136,16 @@ class RerunFeed:
             rec.view(small.intrinsics.double().numpy(), small.width, small.height)
             rec.images(small.color.numpy(), small.depth.numpy())
         if boundary.map is not None:
-            rec.map(*self._map_on_host(boundary.map))
+            rec.map(self._map_on_host(boundary.map))
             self._map_waiting.clear()
 
-    def _map_on_host(self, points: MapPoints) -> tuple[np.ndarray, np.ndarray]:
+    def _map_on_host(self, gaussians: Gaussians) -> MapSplats:
         """The map's host copy, on the logger's own CUDA stream (SLAM's does not wait for it)."""
-        if points.centres.is_cuda and self._stream is None:
-            self._stream = torch.cuda.Stream(points.centres.device)
-        stream = torch.cuda.stream(self._stream) if points.centres.is_cuda else contextlib.nullcontext()
-        with stream:
-            return points.centres.cpu().numpy(), points.colors.cpu().numpy()
+        cuda = gaussians.means.is_cuda
+        if cuda and self._stream is None:
+            self._stream = torch.cuda.Stream(gaussians.means.device)
+        with torch.cuda.stream(self._stream) if cuda else contextlib.nullcontext():
+            return MapSplats.of(gaussians)
 
 
 def _thumbnail_on_host(small: Thumbnail) -> Thumbnail:

@@ -9,7 +9,9 @@ on the timeline `frame` (a pose's position in trajectory.txt):
 - `world/trajectory/<k>`: the estimated camera path, a line strip per TRAJECTORY_PIECE frames
   (re-logging one whole strip every frame would make the recording quadratic in its length);
   a replay adds `world/groundtruth/<k>`;
-- `world/map`: the map's Gaussian centres with their colours, one snapshot at a time.
+- `world/map`: the map, one snapshot at a time: its Gaussians as rerun's Gaussian splats
+  (`GaussianSplats3D`: centres, scales, rotations, colours with opacity), or, with a rerun that
+  lacks that archetype, their centres as coloured points.
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ import logging
 import os
 import sys
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rerun as rr
+import torch
 
 from pipeline.errors import OutputError, UserError
+from pipeline.render import Gaussians
+from pipeline.ui.thumbnail import as_u8
 
 log = logging.getLogger("gsplatam")
 
@@ -37,6 +43,29 @@ TRAJECTORY_PIECE = 100  # poses per line strip of a trajectory (each strip also 
 JPEG_QUALITY = 90
 FLUSH_TIMEOUT_S = 10.0  # a spawned viewer closed by its user holds the command's end no longer than this
 COLORS = {"trajectory": (230, 60, 40), "groundtruth": (40, 180, 90)}  # RGB of each trajectory
+SPLATS = hasattr(rr, "GaussianSplats3D")  # rerun's Gaussian-splat archetype (unstable in 0.41)
+
+
+@dataclass
+class MapSplats:
+    """The map's Gaussians on the host, activated as rerun's splats take them."""
+
+    centres: np.ndarray  # [N, 3] float32 world metres
+    scales: np.ndarray  # [N, 3] float32 metres: the standard deviations along the axes
+    quaternions: np.ndarray  # [N, 4] float32 (x, y, z, w), unit
+    colors: np.ndarray  # [N, 4] uint8 RGB and opacity
+
+    @staticmethod
+    def of(gaussians: Gaussians) -> MapSplats:
+        """From the parameters as SLAM holds them (on any device; copied to the host)."""
+        quats = torch.nn.functional.normalize(gaussians.quats.detach().float(), dim=-1)
+        opacity = as_u8(torch.sigmoid(gaussians.opacity_logits.detach().float())[:, None])
+        return MapSplats(
+            gaussians.means.detach().float().cpu().numpy(),
+            gaussians.scales().detach().float().cpu().numpy(),
+            quats[:, [1, 2, 3, 0]].cpu().numpy(),
+            torch.cat([as_u8(gaussians.colors.detach()), opacity], dim=1).cpu().numpy(),
+        )
 
 
 class RerunRecording:
@@ -89,9 +118,15 @@ class RerunRecording:
             strip = centres[piece * TRAJECTORY_PIECE : (piece + 1) * TRAJECTORY_PIECE + 1]
             self._rec.log(f"world/{name}/{piece}", rr.LineStrips3D([strip], colors=COLORS[name]), static=static)
 
-    def map(self, centres: np.ndarray, colors: np.ndarray, static: bool = False) -> None:
-        """The map as points: `centres` [N, 3] world metres, `colors` [N, 3] uint8 RGB."""
-        self._rec.log(MAP, rr.Points3D(centres, colors=colors), static=static)
+    def map(self, splats: MapSplats, static: bool = False) -> None:
+        """The map: as Gaussian splats where this rerun has them, else its centres as points."""
+        if SPLATS:
+            archetype = rr.GaussianSplats3D(
+                centers=splats.centres, scales=splats.scales, quaternions=splats.quaternions, colors=splats.colors
+            )
+            self._rec.log(MAP, archetype, static=static)
+        else:
+            self._rec.log(MAP, rr.Points3D(splats.centres, colors=splats.colors[:, :3]), static=static)
 
     def summary(self, markdown: str) -> None:
         self._rec.log("summary", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)

@@ -1,5 +1,5 @@
 """`gsplatam view --rerun`: a saved run in rerun, as `RerunFeed` logs a running one: the map's
-Gaussian centres with their colours, the camera along the estimated trajectory (frame by frame,
+Gaussians (as splats, or points: rerun_recording.py), the camera along the estimated trajectory (frame by frame,
 with the run's intrinsics) and both trajectories, estimated and ground truth, as lines."""
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ from pipeline.io.files.trajectory import read_tum_trajectory
 from pipeline.io.outputs.intrinsics import CameraIntrinsics
 from pipeline.io.outputs.ply import read_ply
 from pipeline.io.outputs.run_folder import RunFolder
-from pipeline.ui.rerun_recording import RerunRecording
-from pipeline.ui.thumbnail import as_u8
+from pipeline.ui.rerun_recording import MapSplats, RerunRecording
 
 
 @dataclass
@@ -23,8 +22,7 @@ class SavedRun:
     """What a replay shows, read before anything is logged (a bad file leaves no recording)."""
 
     map: Path
-    centres: np.ndarray  # [N, 3] float32 world metres: the Gaussians'
-    colors: np.ndarray  # [N, 3] uint8 RGB
+    splats: MapSplats  # the map.ply's Gaussians
     poses: np.ndarray  # [F, 4, 4] estimated camera-to-world (F = 0 without trajectory.txt)
     camera: CameraIntrinsics | None  # intrinsics.json's, where the run has it
     reference: np.ndarray | None  # [F, 4, 4] ground-truth camera-to-world, where the run has it
@@ -37,10 +35,7 @@ def read_saved_run(path: Path) -> SavedRun:
     ply = folder.map if folder is not None else path
     if not ply.is_file():
         raise UserError(f"no map to show: {ply} does not exist")
-    gaussians = read_ply(ply)
-    run = SavedRun(
-        ply, gaussians.means.float().numpy(), as_u8(gaussians.colors).numpy(), np.zeros((0, 4, 4)), None, None
-    )
+    run = SavedRun(ply, MapSplats.of(read_ply(ply)), np.zeros((0, 4, 4)), None, None)
     if folder is None:
         return run
     if folder.trajectory.is_file():
@@ -57,7 +52,7 @@ def replay_saved_run(path: Path, save: Path | None) -> str:
     -> what was logged, in a line."""
     run = read_saved_run(path)
     recording = RerunRecording(f"gsplatam: {path}", save)
-    recording.map(run.centres, run.colors, static=True)
+    recording.map(run.splats, static=True)
     for number, c2w in enumerate(run.poses):
         recording.at(number)
         recording.pose(c2w)
@@ -67,7 +62,7 @@ def replay_saved_run(path: Path, save: Path | None) -> str:
     recording.trajectory("trajectory", run.poses[:, :3, 3], static=True)
     if run.reference is not None:
         recording.trajectory("groundtruth", run.reference[:, :3, 3], static=True)
-    what = f"{len(run.centres):,} Gaussian centres from {run.map}, {len(run.poses)} poses" + (
+    what = f"{len(run.splats.centres):,} Gaussians from {run.map}, {len(run.poses)} poses" + (
         ", the ground truth" if run.reference is not None else ""
     )
     recording.summary(what)

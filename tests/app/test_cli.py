@@ -18,7 +18,7 @@ from conftest import ROOT
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
 from pipeline.io.files.trajectory import read_tum_trajectory
-from pipeline.io.outputs.exports import FORMATS as EXPORT_FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.sources.datasets.loader import open_dataset
 
 
@@ -146,11 +146,11 @@ def test_run_then_resume_on_a_small_synthetic_sequence(
 
     camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
     assert (camera["width"], camera["height"]) == (64, 48)
-    for fmt, default in EXPORT_FORMATS.items():
-        if fmt == "mesh" and importlib.util.find_spec("open3d") is None:
-            continue  # the mesh extra is absent (tests/io/outputs/test_exports.py says so)
+    for fmt, exporter in EXPORTERS.items():
+        if exporter.NEEDS is not None and importlib.util.find_spec(exporter.NEEDS) is None:
+            continue  # its extra is absent (tests/io/outputs/test_exports.py says so)
         assert main(["export", str(folder), "--to", fmt]) == 0
-        assert (folder / default).exists(), fmt
+        assert (folder / exporter.DEFAULT_NAME).exists(), fmt
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ from conftest import ROOT, write_gt_run
 
 from pipeline.app import report
 from pipeline.extras import CHECKOUT, install_command, pip_command
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_metrics import ClosedLoopRow, LoopRecord, RunMetrics
 
@@ -36,12 +36,12 @@ def _next(run_dir: Path) -> list[str]:
 
 def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> None:
     lines = _next(run_dir)
-    assert len(lines) == 2 + len(FORMATS)  # view, evo, one export per format
+    assert len(lines) == 2 + len(EXPORTERS)  # view, evo, one export per format
     for line in lines:
         command = line.split("   #")[0]
         assert "|" not in command, line
         assert subprocess.run(["bash", "-n", "-c", command]).returncode == 0, line
-    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(FORMATS)
+    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(EXPORTERS)
 
 
 def test_what_is_not_installed_comes_with_its_install_command(

@@ -24,7 +24,7 @@ from pipeline.render import Gaussians
 from pipeline.slam.handoff import FrameResult
 from pipeline.ui import rerun_feed, rerun_recording
 from pipeline.ui.rerun_feed import RerunFeed
-from pipeline.ui.rerun_recording import RerunRecording
+from pipeline.ui.rerun_recording import MapSplats, RerunRecording
 
 Rows = dict[str, list[dict[str, Any]]]
 
@@ -60,10 +60,22 @@ def _path(rows: Rows, name: str) -> np.ndarray:
     return np.concatenate([strips[0]] + [strip[1:] for strip in strips[1:]])
 
 
-def _rgb(packed: list[int]) -> np.ndarray:
-    """rerun's colours, 0xRRGGBBAA -> [N, 3] uint8."""
+def _rgba(packed: list[int]) -> np.ndarray:
+    """rerun's colours, 0xRRGGBBAA -> [N, 4] uint8."""
     rgba = np.asarray(packed, dtype=np.uint32)
-    return np.stack([(rgba >> shift) & 255 for shift in (24, 16, 8)], axis=1).astype(np.uint8)
+    return np.stack([(rgba >> shift) & 255 for shift in (24, 16, 8, 0)], axis=1).astype(np.uint8)
+
+
+def _assert_splats(row: dict[str, Any], gaussians: Gaussians) -> None:
+    """A logged map row holds `gaussians` as rerun's splats: centres, scales, rotations, colours, opacities."""
+    as_u8 = lambda t: (t.clamp(0, 1) * 255).to(torch.uint8).numpy()  # noqa: E731
+    assert np.allclose(row["GaussianSplats3D:centers"], gaussians.means.numpy(), atol=1e-6)
+    assert np.allclose(row["GaussianSplats3D:scales"], gaussians.scales().numpy(), rtol=1e-5)
+    rotations = torch.nn.functional.normalize(gaussians.quats, dim=-1)[:, [1, 2, 3, 0]].numpy()
+    assert np.allclose(row["GaussianSplats3D:quaternions"], rotations, atol=1e-6)
+    rgba = _rgba(row["GaussianSplats3D:colors"])
+    assert np.array_equal(rgba[:, :3], as_u8(gaussians.colors))
+    assert np.array_equal(rgba[:, 3], as_u8(torch.sigmoid(gaussians.opacity_logits)))
 
 
 @pytest.mark.slow
@@ -101,9 +113,9 @@ def test_a_run_records_every_frame_its_camera_the_trajectory_and_the_map(replica
     snapshots = rows["/world/map"]
     assert snapshots[0]["frame"] == 0 and snapshots[-1]["frame"] == 5  # the first frame's and the final map
     for snapshot in snapshots:
-        assert len(snapshot["Points3D:positions"]) == gaussians_at[snapshot["frame"]]
+        assert len(snapshot["GaussianSplats3D:centers"]) == gaussians_at[snapshot["frame"]]
     final = read_ply(folder / "map.ply")
-    assert np.allclose(snapshots[-1]["Points3D:positions"], final.means.numpy(), atol=1e-6)
+    assert np.allclose(snapshots[-1]["GaussianSplats3D:centers"], final.means.numpy(), atol=1e-6)
     assert "run finished" in rows["/summary"][0]["TextDocument:text"][0]
 
 
@@ -177,7 +189,7 @@ def test_a_logger_behind_skips_images_never_poses_and_maps_are_copied_at_the_bou
     assert np.allclose(_path(rows, "trajectory"), torch.stack([_c2w(i) for i in range(8)])[:, :3, 3].numpy())
     assert _frames(rows, "/world/camera/image/color") == [3, 4, 5]
     assert _frames(rows, "/world/map") == [3, 7]  # the first, then the final one at the end
-    first, final = (np.array(row["Points3D:positions"]) for row in rows["/world/map"])
+    first, final = (np.array(row["GaussianSplats3D:centers"]) for row in rows["/world/map"])
     assert np.allclose(first, first_map.numpy()) and np.allclose(final, slam.gaussians.means.numpy())
 
 
@@ -215,12 +227,11 @@ def test_view_replays_a_run_folder_to_a_recording(tmp_path: Path, capsys: pytest
     gaussians, poses, reference, camera = _run_folder(tmp_path / "run")
     rrd = tmp_path / "replay.rrd"
     assert main(["view", str(tmp_path / "run"), "--rerun-save", str(rrd)]) == 0
-    assert f"wrote {rrd}: 25 Gaussian centres" in capsys.readouterr().out
+    assert f"wrote {rrd}: 25 Gaussians" in capsys.readouterr().out
     rows = _rows(rrd)
     saved = read_ply(tmp_path / "run" / "map.ply")
-    (points,) = rows["/world/map"]
-    assert np.allclose(points["Points3D:positions"], gaussians.means.numpy(), atol=1e-6)
-    assert np.array_equal(_rgb(points["Points3D:colors"]), (saved.colors.clamp(0, 1) * 255).to(torch.uint8).numpy())
+    (splats,) = rows["/world/map"]
+    _assert_splats(splats, saved)
     assert _frames(rows, "/world/camera") == list(range(5))
     assert all(np.allclose(_pose(row), c2w, atol=1e-6) for row, c2w in zip(rows["/world/camera"], poses))
     (pinhole,) = rows["/world/camera/image"]
@@ -247,3 +258,25 @@ def test_rerun_mistakes_are_one_line_and_exit_2(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("gsplatam: error: rerun's viewer needs a display")
     assert "--rerun-save FILE.rrd" in err[0] and not list(tmp_path.glob("**/*.rrd*"))
+
+
+def test_the_map_is_logged_as_gaussian_splats_and_as_points_where_rerun_lacks_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gaussians = _gaussians(7)
+    gaussians.log_scales = torch.randn(7, 3) - 3  # anisotropic
+    gaussians.quats = torch.randn(7, 4)  # unnormalised, as SLAM holds them
+    gaussians.opacity_logits = torch.randn(7)
+    recording = RerunRecording("test", tmp_path / "splats.rrd")
+    recording.map(MapSplats.of(gaussians), static=True)
+    recording.close()
+    (row,) = _rows(tmp_path / "splats.rrd")["/world/map"]
+    _assert_splats(row, gaussians)
+
+    monkeypatch.setattr(rerun_recording, "SPLATS", False)
+    recording = RerunRecording("test", tmp_path / "points.rrd")
+    recording.map(MapSplats.of(gaussians), static=True)
+    recording.close()
+    (row,) = _rows(tmp_path / "points.rrd")["/world/map"]
+    assert np.allclose(row["Points3D:positions"], gaussians.means.numpy(), atol=1e-6)
+    assert np.array_equal(_rgba(row["Points3D:colors"])[:, :3], (gaussians.colors * 255).to(torch.uint8).numpy())

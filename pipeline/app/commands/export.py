@@ -1,18 +1,28 @@
-"""`gsplatam export`: a run folder to nerfstudio, .splat, a full PLY, a mesh or a point cloud."""
+"""`gsplatam export`: a run folder to another format; the formats are the registry's (EXPORTERS)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.extras import EXTRA_OF_MODULE
+from pipeline.io.outputs.exports import EXPORTERS
 
-HELP = "a run folder to nerfstudio, .splat, a full PLY, a mesh or a point cloud"
+HELP = f"a run folder to {', '.join(EXPORTERS)}"
+
+
+def _formats_help() -> str:
+    """Each format, what it is for and the extra it needs (% doubled: argparse formats help)."""
+    described = [
+        f"{name}: {exporter.FOR}" + (f" [the '{EXTRA_OF_MODULE[exporter.NEEDS]}' extra]" if exporter.NEEDS else "")
+        for name, exporter in EXPORTERS.items()
+    ]
+    return ("; ".join(described)).replace("%", "%%")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", help="run folder")
-    parser.add_argument("--to", required=True, choices=list(FORMATS), help="the format")
+    parser.add_argument("--to", required=True, choices=list(EXPORTERS), metavar="FORMAT", help=_formats_help())
     parser.add_argument("--output", metavar="PATH", help="file (folder for nerfstudio); default: in the run folder")
     parser.add_argument("--voxel", type=float, default=0.02, help="mesh: TSDF voxel size, metres (default: 0.02)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="mesh: where to render")

@@ -25,7 +25,8 @@ log = logging.getLogger("gsplatam")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "dataset", nargs="?",
-        help=f"dataset folder, Replica or TUM layout (default: synthetic room); or live, without recording: {LIVE_SPECS}",
+        help="dataset folder (Replica, TUM) or bag (ROS 1 .bag, RealSense .bag, ROS 2 folder, .db3, .mcap; default: "
+        f"synthetic room); or live, without recording: {LIVE_SPECS}",
     )  # fmt: skip
     add_config_options(parser)
     add_run_folder_options(parser, "<dataset>_<preset>-<date>-<time>")
@@ -63,13 +64,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _live(args: argparse.Namespace) -> int:
     """`run record3d:URL`, `run nerfcapture:`: the live daemon's session, without the `serve` wording."""
-    from pipeline.app.report import live_outcome
+    from pipeline.app.commands.serve import ended
     from pipeline.app.serve import serve_live
 
     config, device = requested_config(args, live=True)
     if args.resume or args.profile or config.run.loader == "sync":
         raise UserError("a live input takes none of --resume, --profile, --loader sync")
-    result = serve_live(args.dataset, config, device, progress=not args.quiet, overwrite=args.overwrite)
-    if result.metrics is not None:
-        print(live_outcome(result.folder, result.metrics))
-    return 0
+    return ended(serve_live(args.dataset, config, device, progress=not args.quiet, overwrite=args.overwrite))

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+import sys
+from typing import TYPE_CHECKING, Any
 
 from pipeline.app.commands.options import (
     add_config_options,
@@ -14,7 +15,10 @@ from pipeline.app.commands.options import (
 from pipeline.errors import UserError
 from pipeline.io.sources.cameras import CAMERAS
 
-HELP = "live daemon: reconstruct from a phone's stream until Ctrl-C"
+if TYPE_CHECKING:
+    from pipeline.app.serve import ServeResult
+
+HELP = "live daemon: reconstruct from a phone or a RealSense camera until Ctrl-C"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,10 +54,21 @@ def run(args: argparse.Namespace) -> int:
         return serve_on_ray(specs, config, args.ray or None, args.gpus_per_session)
     if len(specs) > 1:
         raise UserError("several sources need --ray (each a session of its own)")
-    from pipeline.app.report import live_outcome
     from pipeline.app.serve import serve_live
 
-    result = serve_live(specs[0], config, device, progress=not args.quiet, overwrite=args.overwrite)
-    if result.metrics is not None:
-        print(live_outcome(result.folder, result.metrics))
-    return 0
+    return ended(serve_live(specs[0], config, device, progress=not args.quiet, overwrite=args.overwrite))
+
+
+def ended(result: ServeResult) -> int:
+    """Print how a live session ended -> its exit code: 1 when the source ended by itself (a
+    camera lost: what was processed is saved), else 0 (Ctrl-C, SIGTERM)."""
+    from pipeline.app.report import live_outcome
+
+    if result.metrics is None:
+        return 0
+    print(live_outcome(result.folder, result.metrics))
+    if result.metrics.interrupted:
+        return 0
+    why = result.metrics.counters.get("last_error") or "its stream ended"
+    print(f"gsplatam: error: the live source ended ({why}); what was processed is saved", file=sys.stderr)
+    return 1

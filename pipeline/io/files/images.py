@@ -79,6 +79,13 @@ def resize_rgbd(
     return color, depth, scaled
 
 
+def halved_to(width: int, height: int, max_width: int) -> tuple[int, int]:
+    """(width, height) halved until the width is at most `max_width` (0: unchanged)."""
+    while max_width and width > max_width and width % 2 == 0 and height % 2 == 0:
+        width, height = width // 2, height // 2
+    return width, height
+
+
 def encode_depth_png(depth: np.ndarray, scale: float) -> bytes:
     """Depth [H, W] metres -> a uint16 PNG of round(depth x scale), saturating at 65535."""
     quantised = np.clip(np.rint(depth.astype(np.float64) * scale), 0, 65535).astype(np.uint16)

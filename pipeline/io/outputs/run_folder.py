@@ -21,7 +21,7 @@ from pipeline.io.files.atomic import atomic_export, atomic_write_all, atomic_wri
 from pipeline.io.files.g2o import G2oEdge, g2o_text
 from pipeline.io.files.trajectory import tum_trajectory_text
 from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
-from pipeline.io.outputs.exports import FORMATS
+from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
 from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics
@@ -44,7 +44,11 @@ RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
 MARKER_FORMAT = "gsplatam.run"
 # The folders a run or an export fills, with what it writes into each (globs in the folder).
-FILLED_FOLDERS = {RECORDING: RECORDING_FILES, FORMATS["nerfstudio"]: NERFSTUDIO_FILES, "renders": ("frame*.png",)}
+FILLED_FOLDERS = {
+    RECORDING: RECORDING_FILES,
+    EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES,
+    "renders": ("frame*.png",),
+}
 
 
 class RunFolder:
@@ -125,7 +129,7 @@ class RunFolder:
 
     def export(self, fmt: str) -> Path:
         """Where `gsplatam export --to fmt` writes by default."""
-        return self.path / FORMATS[fmt]
+        return self.path / EXPORTERS[fmt].DEFAULT_NAME
 
     def recorded(self) -> bool:
         """Whether the folder holds a live session's recording (a dataset `gsplatam run` reads)."""
@@ -133,7 +137,7 @@ class RunFolder:
 
     def earlier_run(self) -> list[str]:
         """The names of what an earlier run (or an export of it) left here; [] for none."""
-        names = [*RESULTS, RECORDING, *FORMATS.values()]
+        names = [*RESULTS, RECORDING, *(e.DEFAULT_NAME for e in EXPORTERS.values())]
         return [name for name in dict.fromkeys(names) if (self.path / name).exists()]
 
     def remove_earlier_run(self) -> None:

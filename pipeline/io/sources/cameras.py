@@ -1,4 +1,5 @@
-"""Live cameras by the scheme that names them: `record3d:URL`, `nerfcapture:[DOMAIN]`; anything
+"""Live cameras by the scheme that names them: `record3d:URL`, `nerfcapture:[DOMAIN]`,
+`realsense:[SERIAL]`; anything
 else a command is given is a dataset folder. A new camera is its module, with a function that
 opens it, and one entry in CAMERAS: commands never learn a camera's prefix."""
 
@@ -66,6 +67,11 @@ def _domain_label(address: str) -> str:
     return f"d{address}" if address else ""
 
 
+def _serial_number(address: str) -> None:
+    if address and not address.isalnum():
+        raise UserError(f"bad serial number in 'realsense:{address}': letters and digits, e.g. realsense:123456789012")
+
+
 CAMERAS = {
     camera.scheme: camera
     for camera in (
@@ -79,6 +85,12 @@ CAMERAS = {
             "NeRFCapture app over DDS (topic Frames, domain live.dds_domain: 0, or DOMAIN; repeatable with --ray, "
             "a domain each); its pose per --set live.device_pose=...",
             address_optional=True, check=_dds_domain, label=_domain_label,
+        ),
+        Camera(
+            "realsense", "pipeline.io.sources.live.realsense:open_realsense", "SERIAL",
+            "Intel RealSense camera over USB (pyrealsense2), the one of serial number SERIAL or the first connected; "
+            "depth aligned to colour by the SDK",
+            address_optional=True, check=_serial_number,
         ),
     )
 }  # fmt: skip

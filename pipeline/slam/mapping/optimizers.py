@@ -13,10 +13,21 @@ from typing import Any, Protocol
 
 import torch
 
-from pipeline.config import MapOptimizerKind
+from pipeline.config import MapOptimizerKind, MappingConfig
 
 BETAS = (0.9, 0.999)
 EPS = 1e-15
+
+
+def learning_rates(config: MappingConfig) -> dict[str, float]:
+    """Adam's step per Gaussian parameter (by `gaussian_map.PARAMETER_NAMES`)."""
+    return {
+        "means": config.lr_means,
+        "quats": config.lr_rotations,
+        "log_scales": config.lr_scales,
+        "opacity_logits": config.lr_opacities,
+        "colors": config.lr_colors,
+    }
 
 
 class MapOptimizer(Protocol):

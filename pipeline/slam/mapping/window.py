@@ -15,17 +15,8 @@ from pipeline.render import Camera, Gaussians, Renderer, ViewsRenderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, prune_mask
 from pipeline.slam.kernels import EAGER, SlamKernels
 from pipeline.slam.keyframes import Keyframe
-from pipeline.slam.mapping.optimizers import MapOptimizer, make_map_optimizer
-
-
-def _learning_rates(config: MappingConfig) -> dict[str, float]:
-    return {
-        "means": config.lr_means,
-        "quats": config.lr_rotations,
-        "log_scales": config.lr_scales,
-        "opacity_logits": config.lr_opacities,
-        "colors": config.lr_colors,
-    }
+from pipeline.slam.mapping.captured import CapturedMapping
+from pipeline.slam.mapping.optimizers import MapOptimizer, learning_rates, make_map_optimizer
 
 
 def _prune(optimizer: MapOptimizer, keep: torch.Tensor) -> Gaussians:
@@ -53,6 +44,7 @@ class MapSettings:
     near: float  # metres
     far: float
     kernels: SlamKernels = EAGER
+    captured: CapturedMapping | None = None  # passes with fixed poses and Adam at a fixed capacity (CUDA graphs)
 
 
 @dataclass(frozen=True)
@@ -105,8 +97,13 @@ def optimise_window(
     are optimised with the Gaussians (the pose gradient through the view matrix, as in
     tracking), each as a twist applied to its camera-to-world: T = exp(twist) @ c2w."""
     config = settings.config
+    if settings.captured is not None and plan.pose_lr == 0 and config.optimizer == "adam":
+        mapped, renders_done, pruned = settings.captured.optimise(
+            gaussians, views, intrinsics, scene_radius, rng, plan.iters, plan.on_step, plan.should_stop
+        )
+        return WindowResult(mapped, [view.c2w for view in views], renders_done, pruned)
     params = as_leaves(gaussians)
-    rates = _learning_rates(config)
+    rates = learning_rates(config)
     groups = [{"params": [getattr(params, n)], "lr": rates[n], "name": n} for n in PARAMETER_NAMES]
     optimizer = make_map_optimizer(groups, config.optimizer, params.means.is_cuda)
     poses = _ViewPoses(views, intrinsics, settings, plan)

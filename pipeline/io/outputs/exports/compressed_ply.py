@@ -14,8 +14,13 @@ from pathlib import Path
 import torch
 
 from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.exports.job import ExportJob
 from pipeline.io.outputs.ply import splat_fields
 from pipeline.render.types import Gaussians
+
+DEFAULT_NAME = "map.compressed.ply"  # in the run folder
+FOR = "the compressed PLY of SuperSplat and PlayCanvas, 16 bytes per Gaussian, by gsplat's exporter"
+NEEDS: str | None = None
 
 
 def compressed_ply_bytes(gaussians: Gaussians) -> bytes:
@@ -29,3 +34,8 @@ def compressed_ply_bytes(gaussians: Gaussians) -> bytes:
 
 def write_compressed_ply(path: Path, gaussians: Gaussians) -> None:
     atomic_write_bytes(path, compressed_ply_bytes(gaussians))
+
+
+def export(job: ExportJob) -> str:
+    write_compressed_ply(job.target, job.checkpoint.gaussians)
+    return f"{len(job.checkpoint.gaussians):,} Gaussians (those over 1/255 opacity), 16 bytes each, chunks of 256"

@@ -12,8 +12,13 @@ import torch
 from pipeline.config import GaussianKind
 from pipeline.geometry import quat_to_rotmat
 from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.exports.job import ExportJob
 from pipeline.io.outputs.ply import gaussian_columns, ply_bytes
 from pipeline.render.types import Gaussians
+
+DEFAULT_NAME = "map_3dgs.ply"  # in the run folder
+FOR = "the 3DGS PLY with every property (normals, f_rest_* as zeros) for viewers that want them all"
+NEEDS: str | None = None
 
 SH_REST = 45  # SH degree 3: 15 coefficients per colour channel beyond the DC term
 
@@ -33,3 +38,8 @@ def surface_normals(gaussians: Gaussians, kind: GaussianKind) -> torch.Tensor:
 def write_full_ply(path: Path, gaussians: Gaussians, kind: GaussianKind) -> None:
     columns = gaussian_columns(gaussians, sh_rest=SH_REST, normals=surface_normals(gaussians, kind))
     atomic_write_bytes(path, ply_bytes(columns))
+
+
+def export(job: ExportJob) -> str:
+    write_full_ply(job.target, job.checkpoint.gaussians, job.run.read_config().gaussians.kind)
+    return f"{len(job.checkpoint.gaussians):,} Gaussians with normals and f_rest_* (zeros)"

@@ -1,21 +1,34 @@
 """A triangle mesh of the map: TSDF fusion of rendered RGB-D views (Open3D, the `mesh` extra).
 
-The caller renders colour and depth from the Gaussian map at the keyframe poses; each view is
-integrated into a sparse (voxel-block) truncated signed-distance volume, and marching cubes
-extracts the zero crossing with per-vertex colours and normals.
+Colour and depth are rendered from the Gaussian map at the keyframe poses (where the export
+runs, which need not be where the run did); each view is integrated into a sparse (voxel-block)
+truncated signed-distance volume, and marching cubes extracts the zero crossing with per-vertex
+colours and normals.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from pipeline.config import Config, RenderConfig
+from pipeline.errors import DataError
+from pipeline.geometry import invert_pose
 from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.exports.job import ExportJob, RunRecords
 from pipeline.io.outputs.intrinsics import CameraIntrinsics
 from pipeline.io.outputs.ply import ply_bytes
+from pipeline.render import Camera, make_renderer, resolve_backend
+from pipeline.slam.gaussian_map import copied
+from pipeline.slam.state import Checkpoint
+
+DEFAULT_NAME = "mesh.ply"  # in the run folder
+FOR = "a triangle mesh with vertex colours, fused from renders at the keyframes"
+NEEDS: str | None = "open3d"
 
 
 @dataclass
@@ -36,6 +49,47 @@ class TriangleMesh:
 TRUNCATION_VOXELS = 4.0  # the signed distance is truncated at this many voxels from the surface
 BLOCK_RESOLUTION = 8  # voxels per side of a block of the sparse volume (blocks are added as needed)
 INITIAL_BLOCKS = 10_000
+MIN_SILHOUETTE = 0.9  # rendered depth is fused only where the map covers the pixel at least this much
+DEPTH_MARGIN = 1.2  # depths beyond this x the deepest keyframe depth are left out of the fusion
+
+
+def export(job: ExportJob) -> str:
+    """The mesh of the map rendered at every keyframe pose on `job.device` (None: the CPU);
+    DataError when the fusion gives no triangle."""
+    views = _rendered_views(job.run, job.checkpoint, job.device or torch.device("cpu"))
+    mesh = fuse_tsdf(views, job.run.read_intrinsics(), job.voxel_m, _max_depth(job.checkpoint))
+    if len(mesh.triangles) == 0:
+        raise DataError(f"the map of {job.run.path} gives an empty mesh at {job.voxel_m} m voxels")
+    write_mesh_ply(job.target, mesh)
+    return f"{len(mesh.vertices):,} vertices, {len(mesh.triangles):,} triangles ({job.voxel_m} m voxels)"
+
+
+def _rendered_views(run: RunRecords, checkpoint: Checkpoint, device: torch.device) -> Iterator[RGBDView]:
+    """Colour and depth rendered from the map at every keyframe pose, one at a time (the fusion
+    asks for the next when it has integrated the last); depth kept where the map covers the
+    pixel (silhouette >= MIN_SILHOUETTE)."""
+    config = run.read_config()
+    renderer = make_renderer(_rendering_on(config, device), config.gaussians, device)
+    camera = run.read_intrinsics()
+    k = torch.tensor(camera.matrix(), dtype=torch.float32, device=device)
+    gaussians = copied(checkpoint.gaussians, device)
+    for keyframe in checkpoint.keyframes:
+        with torch.no_grad():
+            c2w = keyframe.c2w.to(device).float()
+            view = Camera(invert_pose(c2w), k, camera.width, camera.height, config.render.near, config.render.far)
+            out = renderer(gaussians, view)
+            depth = torch.where(out.silhouette >= MIN_SILHOUETTE, out.depth, torch.zeros_like(out.depth))
+            color = (out.color.clamp(0, 1) * 255).round().to(torch.uint8)
+        yield RGBDView(color.cpu().numpy(), depth.cpu().numpy(), c2w.double().cpu().numpy())
+
+
+def _rendering_on(config: Config, device: torch.device) -> RenderConfig:
+    """A finished run's render settings with the backend that suits `device`."""
+    return replace(config.render, backend=resolve_backend(replace(config.render, backend="auto"), device))
+
+
+def _max_depth(checkpoint: Checkpoint) -> float:
+    return DEPTH_MARGIN * max(float(k.depth.max()) for k in checkpoint.keyframes)
 
 
 def fuse_tsdf(views: Iterable[RGBDView], camera: CameraIntrinsics, voxel_m: float, max_depth_m: float) -> TriangleMesh:

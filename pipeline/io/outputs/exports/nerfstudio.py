@@ -25,13 +25,15 @@ import json
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from pipeline.config import Config
 from pipeline.io.files.atomic import atomic_write_bytes, atomic_write_text
+from pipeline.io.files.folders import atomic_folder
 from pipeline.io.files.images import encode_color, encode_depth_png
+from pipeline.io.outputs.exports.job import ExportJob, Frames, Size
 from pipeline.io.outputs.exports.pointcloud import write_pointcloud
 from pipeline.io.outputs.intrinsics import CameraIntrinsics
 from pipeline.io.sources.datasets.loader import open_dataset
@@ -43,9 +45,11 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # right-multiplied: flips th
 DEPTH_UNITS_PER_METRE = 1000.0  # millimetres; nerfstudio's depth_unit_scale_factor is the inverse, 1e-3
 POINTS_FILE = "sparse_pc.ply"
 EVAL_EVERY = 8  # every 8th image held out for evaluation (nerfstudio's own eval_interval)
-Frames = Literal["keyframes", "all"]
-Size = Literal["working", "native"]
 WRITTEN = ("images/frame_*.png", "depth/frame_*.png", "transforms.json", POINTS_FILE)  # in its folder
+
+DEFAULT_NAME = "nerfstudio"  # a folder: transforms.json, images/, depth/, sparse_pc.ply
+FOR = "a nerfstudio dataset to train a full model on (splatfacto, depth-nerfacto)"
+NEEDS: str | None = None
 
 
 def opengl_c2w(c2w_opencv: np.ndarray) -> np.ndarray:
@@ -138,3 +142,15 @@ def write_nerfstudio(folder: Path, views: Iterable[View], camera: CameraIntrinsi
     write_pointcloud(folder / POINTS_FILE, gaussians)
     atomic_write_text(folder / "transforms.json", json.dumps(transforms(frames, camera), indent=2) + "\n")
     return len(frames)
+
+
+def export(job: ExportJob) -> str:
+    """The dataset, written into a temporary folder beside `job.target` and renamed into it."""
+    options, working = job.nerfstudio, job.run.read_intrinsics()
+    views, camera = views_of(job.checkpoint, job.run.read_config(), working, options.frames, options.size)
+    counts: list[int] = []
+    atomic_folder(
+        job.target, lambda staged: counts.append(write_nerfstudio(staged, views, camera, job.checkpoint.gaussians))
+    )
+    what = "keyframes" if options.frames == "keyframes" else "frames"
+    return f"{counts[0]} {what} at {camera.width}x{camera.height} with depth, transforms.json"

@@ -11,8 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.exports.job import ExportJob
 from pipeline.io.outputs.ply import ply_bytes
 from pipeline.render.types import Gaussians
+
+DEFAULT_NAME = "pointcloud.ply"  # in the run folder
+FOR = "the Gaussian centres with their colours, for any point-cloud tool"
+NEEDS: str | None = None
 
 
 def pointcloud_bytes(gaussians: Gaussians) -> bytes:
@@ -24,3 +29,8 @@ def pointcloud_bytes(gaussians: Gaussians) -> bytes:
 
 def write_pointcloud(path: Path, gaussians: Gaussians) -> None:
     atomic_write_bytes(path, pointcloud_bytes(gaussians))
+
+
+def export(job: ExportJob) -> str:
+    write_pointcloud(job.target, job.checkpoint.gaussians)
+    return f"{len(job.checkpoint.gaussians):,} coloured points (Gaussian centres)"

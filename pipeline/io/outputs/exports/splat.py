@@ -15,7 +15,12 @@ import numpy as np
 import torch
 
 from pipeline.io.files.atomic import atomic_write_bytes
+from pipeline.io.outputs.exports.job import ExportJob
 from pipeline.render.types import Gaussians
+
+DEFAULT_NAME = "map.splat"  # in the run folder
+FOR = "antimatter15's .splat for web viewers, 32 bytes per Gaussian"
+NEEDS: str | None = None
 
 SPLAT_RECORD = np.dtype(
     [("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)), ("rotation", "u1", (4,))]
@@ -41,3 +46,8 @@ def splat_bytes(gaussians: Gaussians) -> bytes:
 
 def write_splat(path: Path, gaussians: Gaussians) -> None:
     atomic_write_bytes(path, splat_bytes(gaussians))
+
+
+def export(job: ExportJob) -> str:
+    write_splat(job.target, job.checkpoint.gaussians)
+    return f"{len(job.checkpoint.gaussians):,} Gaussians, 32 bytes each"

@@ -10,8 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.files.atomic import atomic_export
+from pipeline.io.outputs.exports.job import ExportJob
 from pipeline.io.outputs.ply import splat_fields
 from pipeline.render.types import Gaussians
+
+DEFAULT_NAME = "map.spz"  # in the run folder
+FOR = "Niantic's SPZ (version 3, gzip, about a tenth of a PLY), by gsply"
+NEEDS: str | None = "gsply"
 
 
 def write_spz(path: Path, gaussians: Gaussians) -> None:
@@ -20,3 +25,8 @@ def write_spz(path: Path, gaussians: Gaussians) -> None:
     a = {name: np.ascontiguousarray(values.numpy()) for name, values in splat_fields(gaussians).items()}
     data = gsply.GSData(a["means"], a["scales"], a["quats"], a["opacities"], a["sh0"], a["shN"])
     atomic_export(path, lambda staged: gsply.write_spz(staged, data))
+
+
+def export(job: ExportJob) -> str:
+    write_spz(job.target, job.checkpoint.gaussians)
+    return f"{len(job.checkpoint.gaussians):,} Gaussians, SPZ version 3 (gzip)"

@@ -33,7 +33,7 @@ from pipeline.config import ColorEncoding, LiveConfig
 from pipeline.devices import live_max_width
 from pipeline.errors import DataError, UserError
 from pipeline.frame import Frame
-from pipeline.io.files.images import resize_rgbd
+from pipeline.io.files.images import halved_to, resize_rgbd
 from pipeline.io.sources.live.record3d_format import intrinsics_from_metadata, rgb_array, unpack_frame
 from pipeline.source import SourceCounters
 
@@ -409,13 +409,6 @@ class Backoff:
             return self.config.busy_probe_s
         delay, self._next_s = self._next_s, min(2 * self._next_s, self.config.retry_max_s)
         return delay
-
-
-def halved_to(width: int, height: int, max_width: int) -> tuple[int, int]:
-    """(width, height) halved until the width is at most `max_width` (0: unchanged)."""
-    while max_width and width > max_width and width % 2 == 0 and height % 2 == 0:
-        width, height = width // 2, height // 2
-    return width, height
 
 
 def open_record3d(address: str, live: LiveConfig, device: torch.device) -> Record3DSource:

@@ -1,0 +1,105 @@
+"""The GPU paths of the pipeline against their plain twins: the pinned side-stream upload, the
+`align` solve replayed as a CUDA graph, the compiled kernels. Skipped without CUDA."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.config import SyntheticConfig, load_config, with_dataset_defaults
+from pipeline.frame import Frame
+from pipeline.geometry import invert_pose, se3_exp
+from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
+from pipeline.render import Camera, RenderOutput
+from pipeline.slam.kernels import EAGER, make_kernels
+from pipeline.slam.tracking.align_tracker import AlignTracker
+from pipeline.stages.upload import PinnedUploader, host_frame_tensors
+
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
+CUDA = torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+WIDTH, HEIGHT = 160, 120
+SCENE = make_scene(0)
+
+
+def _frame(index: int, c2w: np.ndarray) -> Frame:
+    k = default_intrinsics(WIDTH, HEIGHT)
+    color, depth = render_view(SCENE, c2w, k, WIDTH, HEIGHT, supersample=1)
+    return Frame(index, 0.1 * index, color, depth.astype(np.float32), k, c2w)
+
+
+def test_the_pinned_side_stream_upload_equals_a_plain_copy() -> None:
+    poses = trajectory(SyntheticConfig(seed=0), 6)
+    uploader = PinnedUploader(CUDA, slots=2)  # fewer slots than frames: each slot is reused
+    frames = [_frame(i, pose) for i, pose in enumerate(poses)]
+    uploaded = [uploader(frame) for frame in frames]
+    for frame, upload in zip(frames, uploaded):
+        got = upload.wait()
+        want = host_frame_tensors(frame)
+        for name in ("depth", "intrinsics", "c2w_gt"):
+            assert torch.equal(getattr(got, name).cpu(), getattr(want, name)), name
+        # The same bytes, divided by 255 on the GPU and on the CPU: equal to the last bit or one off.
+        torch.testing.assert_close(got.color.cpu(), want.color, rtol=0, atol=2**-23)
+
+
+def _exact_renderer(gaussians: object, camera: Camera) -> RenderOutput:
+    """The room itself, seen from the camera (the Gaussians are ignored): a map without error."""
+    c2w = invert_pose(camera.w2c.double()).cpu().numpy()
+    color, depth = render_view(SCENE, c2w, default_intrinsics(WIDTH, HEIGHT), WIDTH, HEIGHT, supersample=1)
+    color_t = torch.from_numpy(color).float().div(255).to(CUDA)
+    depth_t = torch.from_numpy(depth).float().to(CUDA)
+    none = torch.zeros(0, device=CUDA)
+    return RenderOutput(color_t, depth_t, (depth_t > 0).float(), none, none.bool())
+
+
+def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve() -> None:
+    config = with_dataset_defaults(load_config("tiny", overrides=["tracking.method=align"]), "replica")
+    start = trajectory(SyntheticConfig(seed=0), 1)[0]
+    truth = start @ se3_exp(torch.tensor([0.02, -0.01, 0.015, 0.03, 0.01, -0.02], dtype=torch.float64)).numpy()
+    upload = host_frame_tensors(_frame(1, truth))
+    frame = type(upload)(**{k: (v.to(CUDA) if isinstance(v, torch.Tensor) else v) for k, v in vars(upload).items()})
+    init = torch.from_numpy(start).float().to(CUDA)
+    compiled = make_kernels(compiled=True).align_iteration
+    variants = {"eager": (EAGER.align_iteration, False), "graphed": (EAGER.align_iteration, True)}
+    variants["compiled and graphed"] = (compiled, True)  # as the presets run on CUDA
+    results = {}
+    for name, (iteration, capture) in variants.items():
+        near, far = config.render.near, config.render.far
+        tracker = AlignTracker(_exact_renderer, config.tracking, near, far, iteration, capture=capture)
+        for _ in range(2):  # a graph is recorded on the first call and replayed on the second
+            results[name] = tracker(None, frame, init)  # type: ignore[arg-type]
+    eager = results["eager"]
+    assert eager.failure == ""
+    assert float(torch.linalg.norm(eager.c2w[:3, 3].double().cpu() - torch.from_numpy(truth[:3, 3]))) < 0.005
+    for name in ("graphed", "compiled and graphed"):
+        assert results[name].failure == "", name
+        assert torch.allclose(results[name].c2w, eager.c2w, atol=1e-5), name
+        assert torch.allclose(results[name].coverage, eager.coverage), name
+
+
+def _images(seed: int) -> tuple[torch.Tensor, ...]:
+    generator = torch.Generator().manual_seed(seed)
+    color = torch.rand(HEIGHT, WIDTH, 3, generator=generator)
+    depth = torch.rand(HEIGHT, WIDTH, generator=generator) * 4
+    depth[torch.rand(HEIGHT, WIDTH, generator=generator) < 0.1] = 0
+    silhouette = torch.rand(HEIGHT, WIDTH, generator=generator)
+    render_color = (color + 0.1 * torch.rand(HEIGHT, WIDTH, 3, generator=generator)).clamp(0, 1)
+    render_depth = depth + 0.05 * torch.rand(HEIGHT, WIDTH, generator=generator)
+    return tuple(t.to(CUDA) for t in (render_color, render_depth, silhouette, color, depth))
+
+
+def test_the_compiled_losses_equal_the_eager_ones_in_value_and_gradient() -> None:
+    render_color, render_depth, silhouette, color, depth = _images(0)
+    values, grads = [], []
+    for kernels in (EAGER, make_kernels(compiled=True)):
+        rc = render_color.clone().requires_grad_(True)
+        rd = render_depth.clone().requires_grad_(True)
+        mapping = kernels.mapping_loss(rc, rd, color, depth, 0.2, 1.0, 0.5)
+        tracking, pixels = kernels.tracking_loss(rc, rd, silhouette, color, depth, 0.99, 1.0, 0.5)
+        (mapping + 1e-3 * tracking).backward()
+        values.append((mapping.detach(), tracking.detach(), pixels))
+        grads.append((rc.grad, rd.grad))
+    (m0, t0, p0), (m1, t1, p1) = values
+    assert torch.allclose(m0, m1, rtol=1e-5) and torch.allclose(t0, t1, rtol=1e-5) and torch.equal(p0, p1)
+    for g0, g1 in zip(*grads):
+        assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-8)
