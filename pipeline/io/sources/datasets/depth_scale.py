@@ -28,23 +28,21 @@ CONVENTIONS = {  # depth units per metre -> what they are
 }
 
 
+IMAGE_LAYOUTS = ("tum", "replica")  # folders of depth images, read at dataset.depth_scale
+
+
 def check_depth_scale(dataset: Dataset, config: DatasetConfig) -> None:
-    """Read the depth of the first frames at `dataset.depth_scale` and log its median (debug); UserError
-    where that median lies outside `config.depth_range_m`, a warning where the scale is the
-    layout's default (not set) and another usual one gives a more usual median. Float depth
-    images are metres: no scale applies to them."""
-    median, floats = _median_depth(dataset)
+    """Read the depth of the first frames and log its median (debug); UserError where that
+    median lies outside `config.depth_range_m`, a warning where the scale is the layout's default
+    (not set) and another usual one gives a more usual median. Float depth images are metres, and
+    a bag's depth comes in its messages' own units: no scale applies to them."""
+    median, where = _median_depth(dataset, config)
     if median is None:
         return  # no valid depth: the first frame's decoding names it
-    scale = dataset.depth_scale
-    if floats:
-        where = "the depth images hold floats, read as metres"
-    else:
-        origin = "set" if config.depth_scale else f"{dataset.format}'s default"
-        where = f"dataset.depth_scale={scale:g} ({origin})"
     found = f"the first {min(FIRST_FRAMES, len(dataset))} frames' depth has a median of {median:.3g} m at {where}"
     log.debug("depth: %s", found)
-    advice = "" if floats else _advice(median, scale)
+    scaled = where.startswith("dataset.depth_scale")
+    advice = _advice(median, dataset.depth_scale) if scaled else ""
     if config.depth_range_m:
         near, far = config.depth_range_m
         if not near <= median <= far:
@@ -55,17 +53,21 @@ def check_depth_scale(dataset: Dataset, config: DatasetConfig) -> None:
         log.warning("depth: %s, unusual for an RGB-D camera: %s", found, advice)
 
 
-def _median_depth(dataset: Dataset) -> tuple[float | None, bool]:
-    """-> (the median of the first frames' valid depth in metres, None without any; whether the
-    images hold floats)."""
-    valid, floats = [], False
-    for ref in dataset.refs[:FIRST_FRAMES]:
-        raw = read_depth_image(ref.depth_path)
-        floats = raw.dtype == np.float32
-        depth = raw if floats else raw.astype(np.float32) / np.float32(dataset.depth_scale)
-        valid.append(depth[np.isfinite(depth) & (depth > 0)])
-    values = np.concatenate(valid) if valid else np.zeros(0)
-    return (float(np.median(values)) if values.size else None), floats
+def _median_depth(dataset: Dataset, config: DatasetConfig) -> tuple[float | None, str]:
+    """-> (the median of the first frames' valid depth in metres, None without any; what it was
+    read at)."""
+    first = dataset.refs[:FIRST_FRAMES]
+    if dataset.format not in IMAGE_LAYOUTS:  # a bag: decoded in its own units
+        depths = [dataset.decode(ref).depth for ref in first]
+        where = f"the {dataset.format}'s own depth units"
+    else:
+        raw = [read_depth_image(ref.depth_path) for ref in first]
+        floats = any(image.dtype == np.float32 for image in raw)
+        depths = [image if floats else image.astype(np.float32) / np.float32(dataset.depth_scale) for image in raw]
+        origin = "set" if config.depth_scale else f"{dataset.format}'s default"
+        where = "float depth images' own metres" if floats else f"dataset.depth_scale={dataset.depth_scale:g} ({origin})"
+    values = np.concatenate([d[np.isfinite(d) & (d > 0)] for d in depths]) if depths else np.zeros(0)
+    return (float(np.median(values)) if values.size else None), where
 
 
 def _advice(median: float, scale: float) -> str:
