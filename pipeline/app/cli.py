@@ -79,9 +79,9 @@ class Parser(argparse.ArgumentParser):
         if choices is not None and value not in choices:
             names = [str(c) for c in choices]
             hint = did_you_mean(nearest(str(value), names))
-            listed = ", ".join(names)
+            listed = ", ".join(map(repr, names))
             raise argparse.ArgumentError(
-                action, f"invalid choice: '{value}'" + (f": {hint}" if hint else "") + f" (choose from {listed})"
+                action, f"invalid choice: {value!r}" + (f": {hint}" if hint else "") + f" (choose from {listed})"
             )
 
 
@@ -99,7 +99,10 @@ def _common_options() -> Parser:
     return common
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser: every command's arguments, or (`only`, the command given) that
+    command's alone, the others by name and help line (a command's arguments may import what
+    takes seconds to load: the export registry's writers)."""
     parser = Parser(
         prog="gsplatam",
         description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).",
@@ -111,7 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     for name, command in COMMANDS.items():
         # the description and epilog as written (a command's list of settings keeps its lines)
         formatter = argparse.RawDescriptionHelpFormatter
-        command.add_arguments(sub.add_parser(name, help=command.HELP, parents=[common], formatter_class=formatter))
+        command_parser = sub.add_parser(name, help=command.HELP, parents=[common], formatter_class=formatter)
+        if only is None or only == name:
+            command.add_arguments(command_parser)
     return parser
 
 
@@ -138,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    given = sys.argv[1:] if argv is None else argv
+    command = next((word for word in given if not word.startswith("-")), None)  # a command's name, or a typo
+    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
     _configure_logging(args)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     # SIGINT too, even where the process started with it ignored (a job a shell put in the

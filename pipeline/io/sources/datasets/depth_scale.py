@@ -65,7 +65,9 @@ def _median_depth(dataset: Dataset, config: DatasetConfig) -> tuple[float | None
         floats = any(image.dtype == np.float32 for image in raw)
         depths = [image if floats else image.astype(np.float32) / np.float32(dataset.depth_scale) for image in raw]
         origin = "set" if config.depth_scale else f"{dataset.format}'s default"
-        where = "float depth images' own metres" if floats else f"dataset.depth_scale={dataset.depth_scale:g} ({origin})"
+        where = (
+            "float depth images' own metres" if floats else f"dataset.depth_scale={dataset.depth_scale:g} ({origin})"
+        )
     values = np.concatenate([d[np.isfinite(d) & (d > 0)] for d in depths]) if depths else np.zeros(0)
     return (float(np.median(values)) if values.size else None), where
 
