@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 from pathlib import Path
 
 from pipeline.io.sources.datasets.catalogue import KINDS
@@ -33,5 +34,5 @@ def run(args: argparse.Namespace) -> int:
 
     folder = download_sequence(args.kind, args.name, Path(args.destination), progress=not args.quiet)
     print(f"{args.kind} {args.name} is in {folder}")
-    print(f"next:\n  {gsplatam_command()} run {folder}")
+    print(f"next:\n  {gsplatam_command()} run {shlex.quote(str(folder))}")
     return 0
