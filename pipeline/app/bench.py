@@ -116,6 +116,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "total_ms": 1000 * t.total_s,
         "fps_wall": t.fps_wall,
         "fps_steady": t.fps_steady,
+        "warmup_s": t.warmup_s,
         "kernel_busy": runtime.get("kernel_busy_fraction")
         or (runtime.get("profile") or {}).get("kernel_busy_fraction"),
         "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
@@ -248,7 +249,8 @@ def _driver_version(device: torch.device) -> str | None:
 COLUMNS = [
     ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("repeat", "{}"), ("frames", "{}"),
     ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
-    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("fps_wall", "{:.2f}"),
+    ("warmup_s", "{:.1f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("depth_rmse_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),

@@ -44,6 +44,10 @@ def timing_summary(frames: FrameLog, report: RuntimeReport) -> TimingRecord:
         warmup_frames_excluded=WARMUP_FRAMES,
         fps_wall=report.frames / report.wall_s if report.wall_s > 0 else 0.0,
         fps_steady=steady_fps(frames.arrivals),
+        first_result_s=frames.arrivals[0] - frames.started_at if frames.arrivals else None,
+        warmup_s=frames.arrivals[min(WARMUP_FRAMES, len(frames.arrivals) - 1)] - frames.started_at
+        if frames.arrivals
+        else None,
     )
 
 
@@ -110,7 +114,8 @@ def format_table(metrics: RunMetrics) -> str:
             (
                 "throughput",
                 f"{t.fps_wall:.2f} fps over the whole run"
-                + (f", {t.fps_steady:.2f} after warm-up" if t.fps_steady else ""),
+                + (f", {t.fps_steady:.2f} after warm-up" if t.fps_steady else "")
+                + (f" (warm-up {t.warmup_s:.1f} s)" if t.warmup_s is not None else ""),
             ),
         ]
     rows += [

@@ -1,8 +1,8 @@
 """What SLAM's two sides hand each other, and what SLAM reports per frame.
 
-The tracking side hands each frame to the mapping side as a `TrackedFrame`, carrying the
-`TrackerMark` a checkpoint cut at that frame needs; `FrameResult` is what both sides fill in for
-the outside world (frames.csv, the status endpoint, metrics)."""
+The tracking side hands each frame to the mapping side as a `TrackedFrame` (in one process as it
+is; the process schedule sends it through its frame ring); `FrameResult` is what both sides fill
+in for the outside world (frames.csv, the status endpoint, metrics)."""
 
 from __future__ import annotations
 
@@ -35,22 +35,10 @@ class FrameResult:
 
 
 @dataclass(frozen=True)
-class TrackerMark:
-    """The tracking side's state just after one frame: a checkpoint cut there takes the first
-    `poses_done` poses (and states) and `losses_done` loss-history entries, and the device
-    pose of the last frame tracked well by then."""
-
-    poses_done: int
-    losses_done: int
-    prior: torch.Tensor | None  # [4, 4] camera-to-world
-
-
-@dataclass
 class TrackedFrame:
-    """What tracking hands to mapping."""
+    """What tracking hands to mapping (unless it judged the frame lost): a frame and its pose."""
 
     frame: DeviceFrame
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the device
-    result: FrameResult  # the tracking fields filled in; mapping fills the rest
-    mark: TrackerMark
-    ready: torch.cuda.Event | None  # recorded after tracking on its stream; None on the CPU
+    position: int  # the frame's position among the run's poses
+    ready: torch.cuda.Event | None = None  # recorded after tracking on its stream; None on the CPU

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.compile_cache import persist_compile_cache
 from pipeline.slam.losses import ssim
 from pipeline.slam.tracking.rgbd_alignment import AlignIteration, lm_iteration
 
@@ -61,8 +62,12 @@ class SlamKernels:
 
 
 def make_kernels(compiled: bool) -> SlamKernels:
+    """The kernels, compiled or not; compiled ones are cached in the user's cache folder
+    (`compile_cache`), so that the next run on this machine does not compile them again."""
     if not compiled:
         return SlamKernels(tracking_loss, mapping_loss, lm_iteration)
+    cuda = torch.cuda.is_available()
+    persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
     return SlamKernels(
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),

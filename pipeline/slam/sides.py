@@ -1,4 +1,5 @@
-"""How SLAM's two sides are built from a config, wherever they run (one process or two)."""
+"""How SLAM's two sides are built from a config, wherever they run (one process or two): each
+part takes the config sections it needs."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import torch
 from pipeline.config import Config, switched_on
 from pipeline.render import Renderer, make_capacity_renderer, make_views_renderer
 from pipeline.slam.kernels import make_kernels
+from pipeline.slam.loops.closer import LoopCloser, NoLoopCloser
+from pipeline.slam.mapping.backend import BackendSettings
 from pipeline.slam.mapping.captured import CapturedMapping
 from pipeline.slam.mapping.window import MapSettings
 from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
@@ -20,9 +23,10 @@ def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tra
     return make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
 
 
-def mapping_settings(config: Config, renderer: Renderer, device: torch.device) -> MapSettings:
-    """What mapping needs besides the map: renderers, losses, kernels, and the graphed passes
-    where `mapping.graph` asks for them and a fixed-capacity renderer exists."""
+def backend_settings(config: Config, renderer: Renderer, device: torch.device) -> BackendSettings:
+    """What the mapping side needs besides the map and its loop closer: renderers, losses,
+    kernels, the graphed passes where `mapping.graph` asks for them and a fixed-capacity
+    renderer exists, and its config sections."""
     cuda = device.type == "cuda"
     kernels = make_kernels(switched_on(config.run.compile, cuda))
     views = make_views_renderer(config.render, config.gaussians, device)
@@ -31,4 +35,12 @@ def mapping_settings(config: Config, renderer: Renderer, device: torch.device) -
     captured = None
     if capacity_renderer is not None and switched_on(config.mapping.graph, cuda):
         captured = CapturedMapping(capacity_renderer, config.mapping, config.loss, kernels, near, far, device)
-    return MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels, captured)
+    window = MapSettings(renderer, views, config.mapping, config.loss, near, far, kernels, captured)
+    return BackendSettings(window, config.keyframes, config.densify, config.gaussians, config.run.seed)
+
+
+def loop_closer_for(config: Config) -> LoopCloser | NoLoopCloser:
+    """A fresh loop closer when `loops.enabled`, else one that does nothing."""
+    if not config.loops.enabled:
+        return NoLoopCloser()
+    return LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed)

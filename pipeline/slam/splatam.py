@@ -15,9 +15,9 @@ from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
 from pipeline.slam.handoff import FrameResult
 from pipeline.slam.mapping.backend import MappingBackend
-from pipeline.slam.sides import mapping_settings, tracker_for
+from pipeline.slam.sides import backend_settings, loop_closer_for, tracker_for
 from pipeline.slam.state import Checkpoint
-from pipeline.slam.tracking.frontend import TrackingFrontend
+from pipeline.slam.tracking.frontend import TrackerMark, TrackingFrontend
 
 WARM_UP_FRAMES = 2  # the first frame runs mapping only, the second tracking too
 
@@ -28,20 +28,20 @@ class SplaTAM:
         self.renderer = renderer
         self.device = device
         self._tracker = tracker_for(config, renderer, device)
-        self._map_settings = mapping_settings(config, renderer, device)
+        self._backend_settings = backend_settings(config, renderer, device)
         self._start_afresh()
 
     def _start_afresh(self) -> None:
         """Empty tracking and mapping sides around the same tracker and mapping settings, whose
         compiled kernels and recorded CUDA graphs are kept."""
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
-        self.backend = MappingBackend(self.config, self.renderer, self._map_settings, self.device)
+        self.backend = MappingBackend(self._backend_settings, loop_closer_for(self.config), self.device)
+        self._passed_mark: TrackerMark | None = None  # the tracking side's state as of the last frame mapping passed
 
     @property
     def frames_done(self) -> int:
         """Frames mapping has passed (the frames a checkpoint holds)."""
-        mark = self.backend.mark
-        return 0 if mark is None else mark.poses_done
+        return 0 if self._passed_mark is None else self._passed_mark.poses_done
 
     @property
     def gaussians(self) -> Gaussians | None:
@@ -52,12 +52,15 @@ class SplaTAM:
     @property
     def poses(self) -> list[torch.Tensor]:
         """[4, 4] camera-to-world of every frame mapping has passed."""
-        return self.frontend.poses_with([k.pose for k in self.backend.keyframes], self.frames_done)
+        return self.frontend.trajectory.poses_with([k.pose for k in self.backend.keyframes], self.frames_done)
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
-        """Track one frame (colour, depth and intrinsics on the device) and map it."""
-        tracked = self.frontend.track(frame, self.backend.latest)
-        return self.backend.map(tracked, is_last)
+        """Track one frame (colour, depth and intrinsics on the device) and map it, unless
+        tracking judged it lost."""
+        tracked, result = self.frontend.track(frame, self.backend.latest)
+        mapped = self.backend.skip() if result.lost else self.backend.map(tracked, is_last)
+        self._passed_mark = self.frontend.mark()
+        return mapped.filled(result)
 
     def finish(self, final_renders: int) -> int:
         """After the last frame: `final_renders` view renders of refinement over every keyframe
@@ -90,10 +93,11 @@ class SplaTAM:
     def checkpoint(self) -> Checkpoint:
         """A host copy of everything needed to continue the run after the last frame mapped."""
         keyframes = [k.pose for k in self.backend.keyframes]
-        return Checkpoint(self.frontend.state(self.backend.mark, keyframes), self.backend.state())
+        return Checkpoint(self.frontend.state(self._passed_mark, keyframes), self.backend.state())
 
     def restore(self, saved: Checkpoint) -> None:
         """Continue from `saved` (the state of the run after `saved.frames_done` frames)."""
         self.frontend.restore(saved.tracking)
-        self.backend.restore(saved.mapping, self.frontend.mark())
-        self.frontend.follow([k.pose for k in self.backend.keyframes])
+        self.backend.restore(saved.mapping)
+        self._passed_mark = self.frontend.mark()
+        self.frontend.trajectory.follow([k.pose for k in self.backend.keyframes])

@@ -21,6 +21,7 @@ class FrameLog:
     logged as they come (a run of weak frames once)."""
 
     def __init__(self) -> None:
+        self.started_at = time.perf_counter()  # host clock (s): the pipeline starts taking frames
         self.results: list[FrameResult] = []
         self.arrivals: list[float] = []
         self.lost_frames = 0

@@ -14,6 +14,7 @@ import sysconfig
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import ROOT, write_gt_run
 
 from pipeline.app import report
@@ -77,6 +78,29 @@ def test_loop_closure_is_reported_only_where_it_ran() -> None:
     assert report.run_summary(loops).endswith(f", loops: {line}")
     plain = RunMetrics("room", frames=100)
     assert "loops" not in report.format_table(plain) and "loops" not in report.run_summary(plain)
+
+
+def test_the_warm_up_is_timed_from_the_pipelines_start() -> None:
+    """The first result 2 s after the start, the last warm-up frame's 3 s after it: metrics.json
+    states both beside the steady and the whole-run rates."""
+    from types import SimpleNamespace
+
+    from pipeline.app.report import WARMUP_FRAMES, timing_summary
+    from pipeline.slam.handoff import FrameResult
+    from pipeline.stages.frame_log import FrameLog
+
+    frames = FrameLog()
+    frames.started_at = 10.0
+    for i, arrived in enumerate((12.0, 12.5, 13.0, 13.1, 13.2)):
+        frames.add(
+            FrameResult(
+                i, i / 30, torch.eye(4), {"tracking": 0.0, "densify": 0.0, "mapping": 0.0, "total": 0.0}, 0, 0, 0.0, 1.0
+            ),
+            arrived,
+        )
+    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0))  # type: ignore[arg-type]
+    assert WARMUP_FRAMES == 2 and timing.first_result_s == 2.0 and timing.warmup_s == 3.0
+    assert timing.fps_wall == 1.25 and timing.fps_steady == pytest.approx(2 / 0.2)
 
 
 BARE_PATH = "/usr/bin:/bin"  # a shell's PATH without this Python's environment (no activated venv)

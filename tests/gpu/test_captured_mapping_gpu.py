@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from plane_scene import K, plane_scene
 
 from pipeline.config import GaussianConfig, LossConfig, MappingConfig, RenderConfig
 from pipeline.render import Gaussians, make_capacity_renderer, make_renderer, make_views_renderer
@@ -47,11 +48,9 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
 
 @pytest.mark.parametrize("per_step", [1, 2])
 def test_graphed_passes_give_the_eager_map(monkeypatch: pytest.MonkeyPatch, per_step: int) -> None:
-    from test_mapping_options import K, _scene
-
     monkeypatch.setattr(captured, "INTERSECTION_QUANTUM", 64)  # the first pass overflows and runs again
     monkeypatch.setattr(captured, "ROW_QUANTUM", 512)  # the doubled map needs more rows: a new graph
-    gaussians, keyframes = _on_cuda(*_scene())
+    gaussians, keyframes = _on_cuda(*plane_scene())
     gaussians.opacity_logits[::7] = -6.0  # pruned at the first step
     config = MappingConfig(iters=8, views_per_step=per_step, prune_at=(0,))
     graphed = _settings(config, graphed=True)

@@ -8,7 +8,7 @@ import random
 
 import pytest
 import torch
-from test_mapping_options import K, _scene
+from plane_scene import K, plane_scene
 
 from pipeline.config import GaussianConfig, LossConfig, MappingConfig, RenderConfig
 from pipeline.render import Gaussians, make_capacity_renderer, make_renderer, make_views_renderer
@@ -34,7 +34,7 @@ def _settings(config: MappingConfig, graphed: bool) -> MapSettings:
 
 
 def _map(gaussians: Gaussians, settings: MapSettings) -> tuple[Gaussians, torch.Tensor | None, int]:
-    _, keyframes = _scene()
+    _, keyframes = plane_scene()
     result = map_window(gaussians, keyframes, K, 2.0, random.Random(4), settings)
     return result.gaussians, result.kept, result.renders
 
@@ -46,7 +46,7 @@ def _assert_same(a: Gaussians, b: Gaussians) -> None:
 
 @pytest.mark.parametrize("per_step", [1, 2])
 def test_fixed_capacity_passes_equal_the_eager_ones_with_pruning(per_step: int) -> None:
-    gaussians, _ = _scene()
+    gaussians, _ = plane_scene()
     gaussians.opacity_logits[::7] = -6.0  # opacity 0.0025: under the pruning threshold
     config = MappingConfig(iters=5, views_per_step=per_step, prune_at=(0, 3))
     eager, eager_kept, eager_renders = _map(gaussians, _settings(config, graphed=False))
@@ -60,7 +60,7 @@ def test_fixed_capacity_passes_equal_the_eager_ones_with_pruning(per_step: int) 
 def test_an_overflowing_pass_runs_again_with_a_grown_capacity_and_the_same_picks(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    gaussians, _ = _scene()
+    gaussians, _ = plane_scene()
     config = MappingConfig(iters=4, prune_at=())
     eager, _, _ = _map(gaussians, _settings(config, graphed=False))
     monkeypatch.setattr(captured, "INTERSECTION_QUANTUM", 64)  # far below this scene's ~800 intersections
@@ -73,7 +73,7 @@ def test_an_overflowing_pass_runs_again_with_a_grown_capacity_and_the_same_picks
 
 def test_the_buffers_grow_with_the_map_and_inert_rows_never_show(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(captured, "ROW_QUANTUM", 256)
-    gaussians, _ = _scene()
+    gaussians, _ = plane_scene()
     config = MappingConfig(iters=3, prune_at=())
     settings = _settings(config, graphed=True)
     assert settings.captured is not None

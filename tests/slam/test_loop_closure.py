@@ -21,6 +21,8 @@ from pipeline.geometry import invert_pose, se3_exp
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic import synthetic_for
 from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
+from pipeline.render.types import Gaussians
+from pipeline.slam.gaussian_map import concatenate
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loops.candidates import descriptor
 from pipeline.slam.loops.closer import LoopCloser
@@ -204,22 +206,40 @@ def test_a_verified_candidate_is_accepted_only_when_another_verified_one_agrees(
     assert [v for v, _ in turned] == [Verdict.UNCONFIRMED] * 2
 
 
+def at_camera_centre(keyframe: Keyframe, count: int) -> Gaussians:
+    """`count` Gaussians at the keyframe's camera centre."""
+    return Gaussians(
+        means=keyframe.c2w[:3, 3].repeat(count, 1),
+        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(count, 1),
+        log_scales=torch.full((count, 3), -4.0),
+        opacity_logits=torch.zeros(count),
+        colors=torch.full((count, 3), 0.5),
+    )
+
+
 def close_loops(sequence: Sequence) -> tuple[LoopCloser, torch.Tensor, int]:
-    """Keyframes kept one by one as the mapping side keeps them, two Gaussians seeded by each
-    (`LoopCloser.seeded`), the store's poses set to each correction (as `MappingBackend` does);
-    -> the closer, the final keyframe poses [K, 4, 4] float64 and the corrections made."""
+    """Keyframes kept one by one as the mapping side keeps them, each seeding two Gaussians at
+    its camera centre (`LoopCloser.seeded`), the map and the store moved by `close_loops` and the
+    loop recorded by `map_published` (as `MappingBackend` calls them); every Gaussian stays at its
+    keyframe's centre. -> the closer, the final keyframe poses [K, 4, 4] float64 and the
+    corrections made."""
+    cpu = torch.device("cpu")
     closer = LoopCloser(CONFIG, TRACKING, samples=1600, seed=0)
+    first = sequence.keyframes[0]
+    gaussians = at_camera_centre(first, 0)
     keyframes: list[Keyframe] = []
     corrected = 0
     for keyframe in sequence.keyframes:
-        closer.seeded(2, keeps=True, device=torch.device("cpu"))
-        keyframes.append(keyframe)
-        correction = closer.keyframe_kept(keyframes, sequence.intrinsics)
-        if correction is not None:
+        closer.seeded(2, keeps=True, device=cpu)
+        gaussians = concatenate(gaussians, at_camera_centre(keyframe, 2))
+        gaussians, keyframes = closer.close_loops(gaussians, [*keyframes, keyframe], sequence.intrinsics)
+        closed = closer.map_published(cpu)
+        if closed:
             corrected += 1
-            assert closer.published(correction).published_s >= correction.closed.detect_s
-            assert torch.equal(correction.node_c2w[0], correction.old_c2w[0])  # the first keyframe holds the frame
-            keyframes = [replace(k, c2w=correction.node_c2w[n].float()) for n, k in enumerate(keyframes)]
+            assert closed[0].published_s >= closed[0].detect_s and closer.map_published(cpu) == ()
+        centres = torch.stack([k.c2w[:3, 3] for k in keyframes]).repeat_interleave(2, dim=0)
+        torch.testing.assert_close(gaussians.means, centres)
+    assert torch.equal(keyframes[0].c2w, first.c2w)  # the first keyframe holds the map's frame
     return closer, torch.stack([k.c2w.double() for k in keyframes]), corrected
 
 

@@ -17,8 +17,9 @@ from pipeline.render import Gaussians, make_renderer
 from pipeline.slam.keyframes import Keyframe, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking.frontend import TrackingFrontend, TrackingState
+from pipeline.slam.tracking.frontend import TrackingFrontend
 from pipeline.slam.tracking.trackers import TrackResult
+from pipeline.slam.tracking.trajectory import TrackingState
 from pipeline.stages.upload import host_frame_tensors
 
 CPU = torch.device("cpu")
@@ -90,15 +91,13 @@ def test_a_lost_frame_is_relocalised_from_a_keyframe_only_when_candidates_are_al
         front = TrackingFrontend(
             BasinTracker(truth, 0.1), replace(TrackingConfig(), relocalise_candidates=candidates), CPU
         )
-        front.poses, front.timestamps, front.states = [shifted(2.0)], [0.0], [TrackingState.TRACKED]
-        front.tracked, front.anchors = list(front.poses), [None]
-        front.last_good = 0
+        front.trajectory.append(shifted(2.0), None, 0.0, TrackingState.TRACKED, None)
         results = [front.track(frame(i), version(keyframes)).result for i in range(1, 4)]
         assert [bool(r.lost) for r in results] == lost
         if candidates:
             assert results[0].relocalised_from == 0 and "relocalised from keyframe 0" in results[0].warning
             assert results[1].relocalised_from is None  # tracked from the relocalised pose
-            torch.testing.assert_close(front.poses[-1], truth)
+            torch.testing.assert_close(front.trajectory.poses[-1], truth)
 
 
 def stamped(index: int, timestamp: float) -> DeviceFrame:
@@ -199,15 +198,16 @@ def test_frames_follow_the_keyframe_they_were_tracked_after() -> None:
     tracker = StubTracker([(pose, "") for pose in truth[1:]])
     front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
     front.track(frame(0), None)
-    keyframe = Keyframe(0, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), front.poses[0], 0)
+    trajectory = front.trajectory
+    keyframe = Keyframe(0, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), trajectory.poses[0], 0)
     for i in (1, 2):
         front.track(frame(i), version((keyframe,)))
-    assert all(a is b for a, b in zip(front.poses_with([keyframe.pose]), front.poses))
+    assert all(a is b for a, b in zip(trajectory.poses_with([keyframe.pose]), trajectory.poses))
     correction = shifted(0.5)
     moved = replace(keyframe, c2w=correction @ keyframe.c2w)
-    followed = front.poses_with([moved.pose])
+    followed = trajectory.poses_with([moved.pose])
     for position in (1, 2):
-        torch.testing.assert_close(followed[position], correction @ front.poses[position])
+        torch.testing.assert_close(followed[position], correction @ trajectory.poses[position])
     torch.testing.assert_close(followed[0], moved.c2w)
     front.track(frame(3), version((moved,)))
     guess = tracker.guesses[-1]  # constant velocity from the corrected poses of frames 1 and 2

@@ -72,6 +72,8 @@ class TimingRecord:
     warmup_frames_excluded: int
     fps_wall: float  # frames over the whole run's wall time
     fps_steady: float | None  # after the warm-up frames; None with too few frames
+    first_result_s: float | None = None  # from the pipeline's start to the first frame's result
+    warmup_s: float | None = None  # from the pipeline's start to the last warm-up frame's result (compiles, graphs)
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ an accepted loop, the corrected keyframe poses with the map moved along.
 Each Gaussian remembers the node of the keyframe that created it (`LoopState.creator`): one
 seeded by a frame that becomes a keyframe belongs to that keyframe's node; one seeded by another
 frame to the newest keyframe's (the frame was tracked against the map around it, and tracking
-follows that keyframe: `TrackingFrontend.poses_with`). A correction moves every Gaussian rigidly
+follows that keyframe: `Trajectory.poses_with`). A correction moves every Gaussian rigidly
 with its node's correction, c2w_new @ inv(c2w_old); mapping then re-fits where old and new
 parts of the map overlap.
 
@@ -13,23 +13,29 @@ Odometry edges join consecutive nodes. Their relative poses are the current esti
 again before each optimisation (so that mapping's refinement of keyframe poses counts); their
 information is the dense alignment of the new keyframe to the previous one (`verify`), or
 `odometry_sigma_*` where that alignment judged itself unsound.
+
+With loop closure off (`loops.enabled` false) the mapping side holds a `NoLoopCloser`: the same
+calls, doing nothing.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, replace
 
 import torch
 
 from pipeline.config import LoopConfig, TrackingConfig
+from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loops.candidates import descriptor
-from pipeline.slam.loops.detection import ClosedLoop, detect_loops, verify
-from pipeline.slam.loops.map_correction import corrections
+from pipeline.slam.loops.detection import ClosedLoop, closed_loop_line, detect_loops, verify
+from pipeline.slam.loops.map_correction import corrections, move_map
 from pipeline.slam.loops.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
 from pipeline.slam.state import LoopState
 
+log = logging.getLogger("gsplatam")
 F64 = torch.float64
 
 
@@ -51,6 +57,7 @@ class LoopCloser:
         self.seed = seed
         self.state = LoopState.empty()
         self._descriptors: dict[int, torch.Tensor] = {}  # keyframe position -> descriptor, computed once
+        self._unpublished: Correction | None = None  # a loop closed whose corrected map is not yet published
 
     def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
         """Continue from `saved` (None: a checkpoint without loop closure's state: a graph that
@@ -59,6 +66,18 @@ class LoopCloser:
             saved = replace(LoopState.empty(), creator=torch.full((gaussians,), -1, dtype=torch.int64))
         self.state = replace(saved, creator=saved.creator.to(device), node_positions=list(saved.node_positions))
         self._descriptors = {}
+
+    def saved(self, keyframes: list[Keyframe]) -> LoopState:
+        """A host copy of the state, its nodes at the stored `keyframes`' current poses."""
+        state = self.state
+        return replace(
+            state,
+            creator=state.creator.cpu(),
+            node_c2w=self.graph_poses(keyframes),
+            node_positions=list(state.node_positions),
+            loops=list(state.loops),
+            closed=list(state.closed),
+        )
 
     def graph_poses(self, keyframes: list[Keyframe]) -> torch.Tensor:
         """[K, 4, 4] float64 of the nodes: the stored keyframes' current poses, the last known of the others."""
@@ -82,6 +101,32 @@ class LoopCloser:
         """The map was cut to the Gaussians at `positions` [M] (None: no change)."""
         if positions is not None:
             self.state.creator = self.state.creator[positions.to(self.state.creator.device)]
+
+    def close_loops(
+        self, gaussians: Gaussians, keyframes: list[Keyframe], intrinsics: torch.Tensor
+    ) -> tuple[Gaussians, list[Keyframe]]:
+        """The newest of `keyframes` (the store, oldest first) was just kept (`keyframe_kept`);
+        -> the map and the store, moved with the corrected poses when a loop closed (recorded
+        when that map is published: `map_published`), else as they were."""
+        correction = self.keyframe_kept(keyframes, intrinsics)
+        if correction is None:
+            return gaussians, keyframes
+        self._unpublished = correction
+        moved = move_map(gaussians, self.state.creator, correction.old_c2w, correction.node_c2w)
+        node_of = self.state.node_of()
+        return moved, [replace(k, c2w=correction.node_c2w[node_of[k.pose.position]].to(k.c2w)) for k in keyframes]
+
+    def map_published(self, device: torch.device) -> tuple[ClosedLoop, ...]:
+        """The map is published: -> the loop closed in it (recorded, with the time from its
+        detection's start until now, and logged), if any."""
+        correction, self._unpublished = self._unpublished, None
+        if correction is None:
+            return ()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)  # once per loop closed: its times are the GPU's too
+        closed = self.published(correction)
+        log.info(closed_loop_line(closed))  # a mapping process configures no logging: its client logs the report
+        return (closed,)
 
     def keyframe_kept(self, keyframes: list[Keyframe], intrinsics: torch.Tensor) -> Correction | None:
         """The newest of `keyframes` (the store, oldest first) was just kept: its node and
@@ -150,3 +195,29 @@ class LoopCloser:
         """Nodes at the current estimates (stored keyframes' poses, the last known of the others),
         odometry edges at the relative poses they imply, and `loops`."""
         return chained(self.graph_poses(keyframes), self.state.odometry_information, tuple(loops))
+
+
+class NoLoopCloser:
+    """Loop closure off: `LoopCloser`'s calls, keeping no graph and closing no loop."""
+
+    def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
+        """Nothing to continue (loop closure's part of a checkpoint, if any, is left aside)."""
+
+    def saved(self, keyframes: list[Keyframe]) -> None:
+        """No state: a checkpoint without loop closure's part."""
+
+    def seeded(self, count: int, keeps: bool, device: torch.device) -> None:
+        """No node owns a Gaussian."""
+
+    def kept(self, positions: torch.Tensor | None) -> None:
+        """No node owns a Gaussian."""
+
+    def close_loops(
+        self, gaussians: Gaussians, keyframes: list[Keyframe], intrinsics: torch.Tensor
+    ) -> tuple[Gaussians, list[Keyframe]]:
+        """-> the map and the store as they are."""
+        return gaussians, keyframes
+
+    def map_published(self, device: torch.device) -> tuple[ClosedLoop, ...]:
+        """-> no loop closed."""
+        return ()

@@ -39,7 +39,7 @@ class MapSettings:
 
     renderer: Renderer
     render_views: ViewsRenderer
-    config: MappingConfig
+    mapping: MappingConfig
     loss: LossConfig
     near: float  # metres
     far: float
@@ -77,7 +77,7 @@ def map_window(
     on_step: Callable[[], None] | None = None,
 ) -> WindowResult:
     """SplaTAM's mapping of a frame: `config.iters` view renders at fixed poses (`optimise_window`)."""
-    plan = WindowPlan(settings.config.iters, on_step=on_step)
+    plan = WindowPlan(settings.mapping.iters, on_step=on_step)
     return optimise_window(gaussians, views, intrinsics, scene_radius, rng, settings, plan)
 
 
@@ -96,7 +96,7 @@ def optimise_window(
     `prune_scale_factor` x `scene_radius` metres go too). With `plan.pose_lr` the views' poses
     are optimised with the Gaussians (the pose gradient through the view matrix, as in
     tracking), each as a twist applied to its camera-to-world: T = exp(twist) @ c2w."""
-    config = settings.config
+    config = settings.mapping
     if settings.captured is not None and plan.pose_lr == 0 and config.optimizer == "adam":
         mapped, renders_done, pruned = settings.captured.optimise(
             gaussians, views, intrinsics, scene_radius, rng, plan.iters, plan.on_step, plan.should_stop
@@ -182,7 +182,7 @@ def _views_loss(
     params: Gaussians, views: list[Keyframe], cameras: list[Camera], settings: MapSettings
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean mapping loss over the views, and the Gaussians any of them saw ([N] bool)."""
-    config, weights, kernels = settings.config, settings.loss, settings.kernels
+    config, weights, kernels = settings.mapping, settings.loss, settings.kernels
     outs = [settings.renderer(params, cameras[0])] if len(cameras) == 1 else settings.render_views(params, cameras)
     losses = [
         kernels.mapping_loss(

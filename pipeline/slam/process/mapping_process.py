@@ -21,14 +21,13 @@ import torch
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import make_renderer
-from pipeline.slam.handoff import FrameResult, TrackedFrame, TrackerMark
+from pipeline.slam.handoff import TrackedFrame
 from pipeline.slam.kernel_time import KernelTimer
-from pipeline.slam.mapping.backend import MappingBackend
-from pipeline.slam.mapping.window import MapSettings
+from pipeline.slam.mapping.backend import BackendSettings, MappingBackend
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
 from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWriter
-from pipeline.slam.sides import mapping_settings
+from pipeline.slam.sides import backend_settings, loop_closer_for
 
 BEAT_S = 0.2  # an idle mapping process shows a sign of life this often
 
@@ -66,8 +65,7 @@ class MappingLoop:
         self.config = setup.config
         self.device = torch.device(setup.device)
         renderer = make_renderer(self.config.render, self.config.gaussians, self.device)
-        self.settings: MapSettings = mapping_settings(self.config, renderer, self.device)
-        self.renderer = renderer
+        self.settings: BackendSettings = backend_settings(self.config, renderer, self.device)
         self.backend = self._new_backend()
         self.writer = MapWriter(setup.control, setup.generation, self._grow)
         self.ring: FrameRing | None = None
@@ -77,7 +75,7 @@ class MappingLoop:
         self.kernel_timer = KernelTimer()
 
     def _new_backend(self) -> MappingBackend:
-        backend = MappingBackend(self.config, self.renderer, self.settings, self.device)
+        backend = MappingBackend(self.settings, loop_closer_for(self.config), self.device)
         backend.on_step = self._beat
         return backend
 
@@ -123,7 +121,7 @@ class MappingLoop:
             self.setup.outbox.put(m.StateSent(message.request, state, self.writer.number))
         elif isinstance(message, m.RestoreState):
             saved = message.state.unpacked()
-            self.backend.restore(saved, TrackerMark(saved.frames_seen, 0, None))
+            self.backend.restore(saved)
             self._publish()
             self.setup.outbox.put(m.Done())
         elif isinstance(message, m.StartAfresh):
@@ -181,14 +179,10 @@ class MappingLoop:
         assert self.ring is not None
         slot = self.ring.take(handed.slot)
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
-        result = FrameResult(handed.index, handed.timestamp, slot.c2w, {}, 0, 0, 0.0, 1.0)
-        tracked = TrackedFrame(frame, slot.c2w, result, TrackerMark(handed.position + 1, 0, None), None)
-        closed_before = len(self.backend.loops_closed())
-        done = self.backend.map(tracked, is_last=handed.is_last)
+        done = self.backend.map(TrackedFrame(frame, slot.c2w, handed.position), is_last=handed.is_last)
         self._publish()
-        seconds, closed = done.seconds, self.backend.loops_closed()[closed_before:]
-        mapped = m.FrameMapped(handed.index, True, done.added, seconds["densify"], seconds["mapping"], tuple(closed))
-        self.setup.outbox.put(mapped)
+        report = m.FrameMapped(handed.index, True, done.added, done.densify_s, done.mapping_s, done.closed)
+        self.setup.outbox.put(report)
 
     def _refine(self) -> None:
         started = time.perf_counter()

@@ -66,7 +66,7 @@ class ProcessSplaTAM:
     @property
     def poses(self) -> list[torch.Tensor]:
         """[4, 4] camera-to-world per frame tracked, the keyframes' as mapping refined them."""
-        return self.frontend.poses_with(self._keyframes())
+        return self.frontend.trajectory.poses_with(self._keyframes())
 
     def _keyframes(self) -> tuple[KeyframePose, ...]:
         held = self.held
@@ -78,13 +78,11 @@ class ProcessSplaTAM:
         self.mapping.check()
         first = self.frontend.frames_done == 0
         latest = None if first else self.mapping.hold_newest(self._first_version)
-        tracked = self.frontend.track(frame, latest)
+        tracked, result = self.frontend.track(frame, latest)
         if first:
-            self._scene_radius = scene_radius_of(frame.depth, self.config)
+            self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
-        result = tracked.result
-        position = self.frontend.frames_done - 1
-        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, position, is_last)
+        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last)
         result.map_version = 0 if latest is None else latest.number
         result.gaussians = 0 if latest is None else len(latest.gaussians)
         result.seconds.update(densify=0.0, mapping=0.0)
@@ -137,7 +135,7 @@ class ProcessSplaTAM:
         self._scene_radius = saved.mapping.scene_radius
         self._intrinsics = saved.mapping.intrinsics
         self._first_version = self.mapping.newest_version()
-        self.frontend.follow(self.mapping.hold_newest(self._first_version).keyframes)
+        self.frontend.trajectory.follow(self.mapping.hold_newest(self._first_version).keyframes)
 
     def finish(self, final_renders: int) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders

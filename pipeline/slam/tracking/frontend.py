@@ -1,9 +1,8 @@
 """SLAM's tracking side: predict the pose, track it against a published map version, judge it.
 
-It holds what tracking carries from frame to frame (the estimated poses and which were lost, the
-loss history that lost-tracking detection compares against, the last good device pose) and hands
-each frame to mapping as a `TrackedFrame`, with the marks a checkpoint cut at that frame needs
-from this side.
+It carries the trajectory (`Trajectory`: the poses, what they follow, how they were judged) and
+the loss history that lost-tracking detection compares against from frame to frame, and hands
+each frame to mapping as a `TrackedFrame`; `mark` says where a checkpoint cut after it stands.
 
 After a lost frame the next guess comes from the last frame tracked well (never from a lost
 pose), and a frame judged lost is tracked again from a few keyframes' poses (`_relocalise`).
@@ -15,7 +14,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from enum import Enum
+from typing import NamedTuple
 
 import torch
 
@@ -23,12 +22,13 @@ from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import constant_velocity, invert_pose
 from pipeline.render import Gaussians
-from pipeline.slam.handoff import FrameResult, TrackedFrame, TrackerMark
+from pipeline.slam.handoff import FrameResult, TrackedFrame
 from pipeline.slam.keyframes import KeyframePose, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.state import FrontendState
 from pipeline.slam.timing import StageClock
 from pipeline.slam.tracking.trackers import Tracker
+from pipeline.slam.tracking.trajectory import TrackingState, Trajectory
 
 LOSS_EXPLOSION_FACTOR = 10.0  # x the median per-pixel tracking loss of earlier frames
 LOSS_HISTORY_MIN = 5
@@ -36,12 +36,15 @@ STALL_RATIO = 0.5  # the next frame this much nearer in time than the last motio
 INTERVAL_WINDOW = 10  # the session's usual frame interval is the median of this many recent ones
 
 
-class TrackingState(Enum):
-    """How a frame's pose came about."""
+@dataclass(frozen=True)
+class TrackerMark:
+    """The tracking side's state just after one frame: a checkpoint cut there takes the first
+    `poses_done` poses (and states) and `losses_done` loss-history entries, and the device
+    pose of the last frame tracked well by then."""
 
-    TRACKED = "tracked"  # from the prediction, judged sound
-    RELOCALISED = "relocalised"  # judged lost from the prediction, sound from a keyframe's pose
-    LOST = "lost"  # judged lost: the pose is kept but not trusted (nor mapped)
+    poses_done: int
+    losses_done: int
+    prior: torch.Tensor | None  # [4, 4] camera-to-world
 
 
 @dataclass(frozen=True)
@@ -69,109 +72,43 @@ class Attempt:
         return TrackingState.TRACKED if self.keyframe is None else TrackingState.RELOCALISED
 
 
+class TrackingOutcome(NamedTuple):
+    """A frame tracked: what mapping takes (unless the frame is lost) and its result so far."""
+
+    tracked: TrackedFrame
+    result: FrameResult  # tracking's fields filled in; mapping fills the rest
+
+
 class TrackingFrontend:
     def __init__(self, tracker: Tracker, config: TrackingConfig, device: torch.device) -> None:
         self.tracker = tracker
         self.config = config
         self.device = device
-        self.poses: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame tracked (since a resume: as saved)
-        self.tracked: list[torch.Tensor] = []  # [4, 4] camera-to-world per frame as tracked (before any correction)
-        self.anchors: list[KeyframePose | None] = []  # per frame: the keyframe it follows, with its pose then
-        self.timestamps: list[float | None] = []  # seconds, per frame tracked (None: before a resume)
-        self.states: list[TrackingState] = []  # per frame tracked
-        self.last_good = -1  # position in `poses` of the last frame not lost
+        self.trajectory = Trajectory(device)
         self.loss_history: list[float] = []
-        self.last_prior: torch.Tensor | None = None  # [4, 4] the device's camera-to-world at `last_good`
         self.clock = StageClock(device)
 
     @property
     def frames_done(self) -> int:
-        return len(self.poses)
-
-    def poses_with(self, keyframes: Sequence[KeyframePose], frames: int | None = None) -> list[torch.Tensor]:
-        """The first `frames` poses (default: all) as the mapping side's `keyframes` now place
-        them: a keyframe's own pose as mapping refined or a loop corrected it; any other frame
-        follows the keyframe it was tracked after (its anchor: the newest keyframe of the map
-        version it was tracked against), pose = anchor_now @ inv(anchor_then) @ pose, as
-        ORB-SLAM's frames follow their reference keyframe. An anchor whose pose is the very
-        tensor it was leaves the pose as it is (no rounding)."""
-        now = {k.position: k.c2w for k in keyframes}
-        corrections: dict[int, torch.Tensor] = {}  # id(anchor) -> its correction, made once
-        return [self._followed(position, now, corrections) for position in range(len(self.poses))[:frames]]
-
-    def _correction(
-        self, anchor: KeyframePose | None, now: dict[int, torch.Tensor], known: dict[int, torch.Tensor]
-    ) -> torch.Tensor | None:
-        """[4, 4] anchor_now @ inv(anchor_then), or None where the anchor has not moved (or left the store)."""
-        if anchor is None or anchor.position not in now or now[anchor.position] is anchor.c2w:
-            return None
-        if id(anchor) not in known:
-            then = anchor.c2w.to(self.device)
-            known[id(anchor)] = now[anchor.position].to(then) @ invert_pose(then)
-        return known[id(anchor)]
-
-    def _followed(
-        self, position: int, now: dict[int, torch.Tensor], known: dict[int, torch.Tensor] | None = None
-    ) -> torch.Tensor:
-        """One frame's pose as the keyframes' poses `now` (position -> [4, 4]) place it
-        (`poses_with`; `known`: the anchors' corrections made so far)."""
-        if position in now:
-            return now[position].to(self.device)
-        correction = self._correction(self.anchors[position], now, {} if known is None else known)
-        pose = self.poses[position]
-        return pose if correction is None else correction @ pose
+        return len(self.trajectory)
 
     def mark(self) -> TrackerMark:
         """Where this side stands now (a checkpoint cut after the last frame tracked)."""
-        return TrackerMark(len(self.poses), len(self.loss_history), self.last_prior)
+        return TrackerMark(len(self.trajectory), len(self.loss_history), self.trajectory.last_prior)
 
     def state(self, mark: TrackerMark | None = None, keyframes: Sequence[KeyframePose] = ()) -> FrontendState:
         """A host copy of this side's state as of `mark` (default: now), with the mapping side's
-        `keyframes` poses (`poses_with`)."""
+        `keyframes` poses (`Trajectory.poses_with`)."""
         mark = mark or self.mark()
-        frames = mark.poses_done
-        return FrontendState(
-            poses=torch.stack(self.poses_with(keyframes, frames)).cpu() if frames else torch.zeros(0, 4, 4),
-            loss_history=list(self.loss_history[: mark.losses_done]),
-            last_prior=None if mark.prior is None else mark.prior.cpu(),
-            lost_frames=self._frames_in(TrackingState.LOST, frames),
-            relocalised_frames=self._frames_in(TrackingState.RELOCALISED, frames),
-            tracked_poses=torch.stack(self.tracked[:frames]).cpu() if frames else torch.zeros(0, 4, 4),
-        )
-
-    def _frames_in(self, state: TrackingState, frames: int) -> list[int]:
-        """Positions of the first `frames` poses whose tracking ended in `state`."""
-        return [i for i, s in enumerate(self.states[:frames]) if s is state]
+        history = list(self.loss_history[: mark.losses_done])
+        return self.trajectory.state(mark.poses_done, mark.prior, keyframes, history)
 
     def restore(self, saved: FrontendState) -> None:
-        """Continue after the frames of `saved` (their poses' times are not kept: the first
-        frames after it use the fixed jump limit and the whole velocity). Its frames follow no
-        keyframe until `follow` names them."""
-        frames = saved.frames_done
-        self.poses = list(saved.poses.to(self.device))
-        tracked = saved.tracked_poses if saved.tracked_poses is not None else saved.poses
-        self.tracked = list(tracked.to(self.device))
-        self.anchors = [None] * frames
-        self.timestamps = [None] * frames
+        """Continue after the frames of `saved` (`Trajectory.restored`)."""
+        self.trajectory = Trajectory.restored(saved, self.device)
         self.loss_history = list(saved.loss_history)
-        states = dict.fromkeys(range(frames), TrackingState.TRACKED)
-        states |= dict.fromkeys(saved.relocalised_frames, TrackingState.RELOCALISED)
-        states |= dict.fromkeys(saved.lost_frames, TrackingState.LOST)
-        self.states = list(states.values())
-        self.last_good = max(set(range(frames)) - set(saved.lost_frames), default=-1)
-        self.last_prior = None if saved.last_prior is None else saved.last_prior.to(self.device)
 
-    def follow(self, keyframes: Sequence[KeyframePose]) -> None:
-        """After a resume: each saved frame follows the newest of `keyframes` (the restored map's)
-        at or before it, from its pose as saved."""
-        ordered = sorted(keyframes, key=lambda k: k.position)
-        newest: KeyframePose | None = None
-        for position in range(len(self.poses)):
-            while ordered and ordered[0].position <= position:
-                newest = ordered.pop(0)
-            self.anchors[position] = newest
-
-    def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackedFrame:
+    def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackingOutcome:
         """Frame t against the latest map version (None: the first frame, where the map starts:
         its pose is the identity). Reads the frame's tracking scalars once per tracker run, to
         judge it; a lost frame is relocalised (`_relocalise`)."""
@@ -196,7 +133,7 @@ class TrackingFrontend:
         if frame.received_at is not None:
             result.received_at = frame.received_at
             result.age_at_start_s = started - frame.received_at
-        return TrackedFrame(frame, attempt.c2w, result, self.mark(), ready)
+        return TrackingOutcome(TrackedFrame(frame, attempt.c2w, len(self.trajectory) - 1, ready), result)
 
     @staticmethod
     def _anchor(latest: MapVersion | None) -> KeyframePose | None:
@@ -215,20 +152,21 @@ class TrackingFrontend:
         good too, else the last good pose (after a loss or a relocalisation the velocity starts
         again from zero). Those frames' poses as the map version's `keyframes` place them: after
         a loop's correction the guess moves with the map."""
-        good, prior, states, last = self.last_good, self.last_prior, self.states, len(self.poses) - 1
+        trajectory = self.trajectory
+        good, prior, states, last = trajectory.last_good, trajectory.last_prior, trajectory.states, len(trajectory) - 1
         now = {k.position: k.c2w for k in keyframes}
         if frame.c2w_prior is not None and prior is not None:
-            return self._followed(good, now) @ invert_pose(prior) @ frame.c2w_prior
+            return trajectory.followed(good, now) @ invert_pose(prior) @ frame.c2w_prior
         if good == last >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
-            before, latest = self._followed(last - 1, now), self._followed(last, now)
+            before, latest = trajectory.followed(last - 1, now), trajectory.followed(last, now)
             return constant_velocity(before, latest, self._velocity_fraction(frame))
-        return self._followed(good, now)
+        return trajectory.followed(good, now)
 
     def _velocity_fraction(self, frame: DeviceFrame) -> float:
         """The part of the last motion to repeat: all of it, unless the last motion spanned a
         stall (a busy GPU, a reconnection: the live source kept only the newest frame) and the
         next frame is at most STALL_RATIO of that time away; then that fraction."""
-        last, before = self.timestamps[-1], self.timestamps[-2]
+        last, before = self.trajectory.timestamps[-1], self.trajectory.timestamps[-2]
         if last is None or before is None or last <= before or frame.timestamp <= last:
             return 1.0
         fraction = (frame.timestamp - last) / (last - before)
@@ -238,9 +176,10 @@ class TrackingFrontend:
         """How far a pose may land from its guess and be trusted: `lost_translation_m` per usual
         frame interval, times the intervals since the last good frame (at least one), since after
         a stall or a reconnection the camera has moved on for longer."""
-        known = [t for t in self.timestamps[-INTERVAL_WINDOW - 1 :] if t is not None]
+        timestamps, last_good = self.trajectory.timestamps, self.trajectory.last_good
+        known = [t for t in timestamps[-INTERVAL_WINDOW - 1 :] if t is not None]
         intervals = [b - a for a, b in zip(known, known[1:]) if b > a]
-        good = self.timestamps[self.last_good] if self.last_good >= 0 else None
+        good = timestamps[last_good] if last_good >= 0 else None
         if not intervals or good is None or frame.timestamp <= good:
             return self.config.lost_translation_m
         usual = sorted(intervals)[len(intervals) // 2]
@@ -268,9 +207,9 @@ class TrackingFrontend:
         as dear as a tracked frame's: adam's `iters` renders and backward passes, align's render
         and solve, and its recovery attempt when the solve fails) and one host read each. A lost
         frame is not mapped, so the extra time replaces mapping's."""
-        attempt_in_row = len(self.states) - 1 - self.last_good  # lost frames just before this one
         best = lost
-        for position in relocalisation_picks(len(keyframes), self.config.relocalise_candidates, attempt_in_row):
+        picks = relocalisation_picks(len(keyframes), self.config.relocalise_candidates, self.trajectory.lost_in_row)
+        for position in picks:
             keyframe = keyframes[position]
             attempt = self._attempt(gaussians, frame, keyframe.c2w, keyframe.index)
             sound = not attempt.verdict.lost and not attempt.verdict.warning
@@ -314,16 +253,9 @@ class TrackingFrontend:
     def _record(self, frame: DeviceFrame, attempt: Attempt, anchor: KeyframePose | None, first: bool) -> None:
         """Carry the frame's pose (following `anchor`), and the loss and device pose of a frame
         tracked well, to the next."""
-        self.poses.append(attempt.c2w)
-        self.tracked.append(attempt.c2w)
-        self.anchors.append(anchor)
-        self.timestamps.append(frame.timestamp)
-        self.states.append(attempt.state)
+        self.trajectory.append(attempt.c2w, anchor, frame.timestamp, attempt.state, frame.c2w_prior)
         if not first and math.isfinite(attempt.verdict.per_pixel):
             self.loss_history.append(attempt.verdict.per_pixel)
-        if attempt.state is not TrackingState.LOST:
-            self.last_good = len(self.poses) - 1
-            self.last_prior = frame.c2w_prior
 
     def _result(self, frame: DeviceFrame, attempt: Attempt) -> FrameResult:
         verdict = attempt.verdict
