@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import shlex
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -13,7 +12,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.app.report import gsplatam_command, run_summary
+from pipeline.app.report import resume_command, run_summary
 from pipeline.app.resume import read_resumable
 from pipeline.app.session import Session, execute_session, open_session
 from pipeline.app.setup import Setup, finish_config
@@ -21,17 +20,20 @@ from pipeline.app.signals import signals_noted
 from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed, OutputError, StageFailure, UserError
 from pipeline.frame import DeviceFrame
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.pictures import render_picture, spread, write_render_picture, write_trajectory_png
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
 from pipeline.io.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StopRecord
 from pipeline.io.sources.datasets.base import Dataset
+from pipeline.io.sources.datasets.depth_scale import check_depth_scale
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.source import DatasetSource
 from pipeline.io.sources.datasets.synthetic import synthetic_for
 from pipeline.io.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.metrics import view_quality
-from pipeline.render import Gaussians
+from pipeline.render import Gaussians, RenderOutput
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
 from pipeline.stages.upload import make_uploader
@@ -167,6 +169,7 @@ def _open_dataset(config: Config, device: torch.device, progress: bool) -> tuple
     under the output folder), and the config finished for it."""
     if config.dataset.path:
         dataset = open_dataset(config.dataset)
+        check_depth_scale(dataset, config.dataset)
         return dataset, finish_config(config, device, dataset.format)
     room = synthetic_for(config.synthetic, device)
     path = cached_synthetic(Path(config.run.output) / "synthetic", room, progress, device)
@@ -191,6 +194,7 @@ def _finish(
     checkpoint = session.slam.checkpoint()
     session.saver.save_now(checkpoint)
     failure = session.slam.failure  # the mapping process failed after SLAM: what it completed is saved
+    _write_trajectory_plot(session.folder)
     metrics = session.metrics(report, _ate(session, dataset), checkpoint.mapping.loops)
     if checkpoint.mapping.loops is not None and checkpoint.tracking.tracked_poses is not None:
         metrics = replace(metrics, ate_as_tracked=_ate_of(checkpoint.tracking.tracked_poses.double().numpy(), dataset))
@@ -275,10 +279,9 @@ def _say_saved(session: Session) -> None:
             "no map was made of the %d frames tracked: %s holds their rows only; run again", slam.frames_done, path
         )
         return
-    resume = f"{gsplatam_command()} run --resume {shlex.quote(str(path))}"
     log.info(
         "saved %d of the %d frames processed in %s%s; once the cause is fixed: %s",
-        saver.saved_frames, slam.frames_done, path, lacks, resume,
+        saver.saved_frames, slam.frames_done, path, lacks, resume_command(path),
     )  # fmt: skip
 
 
@@ -299,12 +302,17 @@ def _render_metrics(
     assert gaussians is not None
     uploader = make_uploader(session.device, slots=2)
     picks = list(range(0, slam.frames_done, config.run.eval_every))
+    pictured = set(spread(picks, config.run.renders))
     scores = []
     for i in tqdm(picks, desc="evaluate", unit="frame", disable=not progress, dynamic_ncols=True):
         if signalled.is_set():
             break
         frame = uploader(dataset.decode(dataset.refs[i])).wait()
-        scores.append(view_quality(slam.renderer, gaussians, frame, poses[i], config.render.near, config.render.far))
+        near, far = config.render.near, config.render.far
+        score = view_quality(slam.renderer, gaussians, frame, poses[i], near, far, keep_render=i in pictured)
+        if score.render is not None:
+            _write_render_picture(session.folder, frame, score.render)
+        scores.append(score)
     done = (
         "complete" if len(scores) == len(picks) else f"cut short by a signal after {len(scores)} of {len(picks)} frames"
     )
@@ -314,12 +322,39 @@ def _render_metrics(
         psnr_db=float(np.mean([s.psnr_db for s in scores])),
         ssim=float(np.mean([s.ssim for s in scores])),
         depth_l1_cm=float(np.mean([s.depth_l1_cm for s in scores])),
+        depth_rmse_cm=float(np.mean([s.depth_rmse_cm for s in scores])),
         frames_evaluated=len(scores),
         every=config.run.eval_every,
     )
     if not signalled.is_set():
         render = replace(render, **_keyframe_psnr(session, gaussians, frame.intrinsics))
     return render, done
+
+
+def _write_render_picture(folder: RunFolder, frame: DeviceFrame, render: RenderOutput) -> None:
+    """renders/frameNNNNNN.png: the frame beside its render (colour, depth)."""
+    picture = render_picture(
+        frame.color.cpu().numpy(),
+        frame.depth.cpu().numpy(),
+        render.color.cpu().numpy(),
+        render.depth.cpu().numpy(),
+    )
+    try:
+        write_render_picture(folder.renders, frame.index, picture)
+    except OSError as exc:
+        raise OutputError(f"cannot write {folder.renders}: {exc.strerror or exc}") from None
+
+
+def _write_trajectory_plot(folder: RunFolder) -> None:
+    """trajectory.png from the trajectory (and reference) just saved; a plot that cannot be made
+    is logged, never the end of a run's outputs."""
+    try:
+        timestamps, estimate = read_tum_trajectory(folder.trajectory)
+        reference = read_tum_trajectory(folder.groundtruth)[1] if folder.groundtruth.is_file() else None
+        if len(estimate) >= 2 and (reference is None or len(reference) == len(estimate)):
+            write_trajectory_png(folder.trajectory_plot, timestamps, estimate, reference)
+    except (OSError, ValueError, np.linalg.LinAlgError) as exc:
+        log.warning("trajectory.png not written: %s", exc)
 
 
 def _keyframe_psnr(session: Session, gaussians: Gaussians, intrinsics: torch.Tensor) -> dict[str, Any]:

@@ -47,12 +47,17 @@ from pipeline.slam.state import Checkpoint, LoopState
 RESULTS = (
     "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
     "trace.json", "profile.txt", "intrinsics.json", "exports.json", "trajectory_as_tracked.txt", "pose_graph.g2o",
+    "trajectory.png", "renders",
 )  # fmt: skip
 RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
 MARKER_FORMAT = "gsplatam.run"
 # The folders a run or an export fills, with what it writes into each (globs in the folder).
-FILLED_FOLDERS = {RECORDING: RECORDING_FILES, EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES}
+FILLED_FOLDERS = {
+    RECORDING: RECORDING_FILES,
+    EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES,
+    "renders": ("frame*.png",),
+}
 
 
 class RunFolder:
@@ -70,6 +75,8 @@ class RunFolder:
         self.trajectory_as_tracked = path / "trajectory_as_tracked.txt"  # with loop closure: before its corrections
         self.pose_graph = path / "pose_graph.g2o"  # with loop closure: the keyframe pose graph (g2o's format)
         self.map = path / "map.ply"
+        self.trajectory_plot = path / "trajectory.png"  # the trajectory against the reference (pictures.py)
+        self.renders = path / "renders"  # the evaluated frames' renders beside the input (pictures.py)
         self.checkpoint = path / "checkpoint.safetensors"
         self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
         self.trace = path / "trace.json"  # --profile: the torch profiler's Chrome trace
