@@ -34,6 +34,7 @@ from pipeline.geometry import se3_exp
 from pipeline.io.files.atomic import atomic_write_text
 from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
 from pipeline.render import Camera, Gaussians, RenderOutput
+from pipeline.slam.cuda_graphs import record
 from pipeline.slam.tracking.align_tracker import AlignTracker
 from pipeline.slam.tracking.rgbd_alignment import LmState, lm_iteration
 
@@ -70,15 +71,7 @@ def solver(tracker: AlignTracker, frame: DeviceFrame, rendered: RenderOutput) ->
 
 def captured(solve: Callable[[], LmState]) -> Callable[[], LmState]:
     """`solve` recorded once as a CUDA graph; calling the result replays it (same inputs' memory)."""
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(3):
-            solve()
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        out = solve()
+    graph, out = record(solve)
 
     def replay() -> LmState:
         graph.replay()

@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.app.report import versions  # noqa: E402
 from pipeline.geometry import se3_exp  # noqa: E402
 from pipeline.render.types import Camera, Gaussians  # noqa: E402
+from pipeline.slam.cuda_graphs import record  # noqa: E402
 from pipeline.slam.kernel_time import union_ms  # noqa: E402
 from pipeline.slam.kernels import make_kernels  # noqa: E402
 from pipeline.slam.mapping.optimizers import EPS  # noqa: E402
@@ -87,19 +88,6 @@ def _measure(run: Callable[[], None], steps: int) -> dict[str, float]:
     return {"wall_ms": wall_ms, "host_ms": host_ms, "kernel_ms": kernel_ms, "wall_over_kernel": wall_ms / kernel_ms}
 
 
-def _graphed(step: Callable[[], None]) -> Callable[[], None]:
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(3):
-            step()
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        step()
-    return graph.replay
-
-
 def case(n: int, views: int, steps: int, device: torch.device) -> dict:
     from pipeline.render.gsplat_backend import render_gsplat_3d_capacity, render_gsplat_3d_views
 
@@ -133,8 +121,8 @@ def case(n: int, views: int, steps: int, device: torch.device) -> dict:
     params = leaves(scene)
     row["capacity_eager"] = _measure(_step_fn(params, cameras, targets, capacity_render, adam(params, True)), steps)
     params = leaves(scene)
-    graphed = _graphed(_step_fn(params, cameras, targets, capacity_render, adam(params, True)))
-    row["capacity_graphed"] = _measure(graphed, steps)
+    graphed, _ = record(_step_fn(params, cameras, targets, capacity_render, adam(params, True)))
+    row["capacity_graphed"] = _measure(graphed.replay, steps)
     print(json.dumps(row), flush=True)
     return row
 

@@ -15,6 +15,7 @@ trap 'tar -czf "$dest/results.tar.gz" -C "$out" .' EXIT
 trap 'exit 143' TERM INT
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+export XDG_CACHE_HOME=$PWD/.device/cache  # our CUDA extension built by an earlier call comes carried in .device/
 tum=.data/tum_fr1_xyz_37
 export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
@@ -23,6 +24,8 @@ for part in "$@"; do
   echo "== $part (suite at ${SECONDS}s)"
   case $part in
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
+    extension) python3 -c "import torch; from pipeline.render.intersect_kernel import intersect_kernel; print('built:', intersect_kernel(torch.device('cuda')) is not None)"
+               cp -r .device/cache/gsplatam/extensions "$out/" ;;  # to carry into later calls
     gpu-tests) python3 -m pytest tests/gpu -o addopts="" -p no:cacheprovider -q -rs 2>&1 | tee "$out/gpu_tests.txt" | tail -n 30 ;;
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
     graph) for g in on off; do  # graphed mapping passes against eager ones, side by side in one call

@@ -1,4 +1,5 @@
-"""Where torch.compile keeps what it compiled, so that a second run on the machine starts warm.
+"""Where torch.compile and our CUDA extension keep what they compiled, so that a second run on
+the machine starts warm.
 
 Inductor caches compiled graphs and Triton kernels under TORCHINDUCTOR_CACHE_DIR, by default a
 folder in /tmp that a reboot or a tmp cleaner empties. Runs keep theirs in the user's cache
@@ -17,12 +18,13 @@ import torch
 CACHE_VARIABLE = "TORCHINDUCTOR_CACHE_DIR"
 
 
-def compile_cache_folder(device: torch.device) -> Path:
-    """$XDG_CACHE_HOME (or ~/.cache)/gsplatam/inductor/<torch, CUDA and device>."""
+def compile_cache_folder(device: torch.device, kind: str = "inductor") -> Path:
+    """$XDG_CACHE_HOME (or ~/.cache)/gsplatam/<kind>/<torch, CUDA and device>: `kind` inductor
+    for torch.compile's caches, extensions for our CUDA extension's build."""
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     build = f"torch-{torch.__version__}-cuda-{torch.version.cuda or 'none'}-{name}"
-    return base / "gsplatam" / "inductor" / re.sub(r"[^A-Za-z0-9.+_-]+", "_", build)
+    return base / "gsplatam" / kind / re.sub(r"[^A-Za-z0-9.+_-]+", "_", build)
 
 
 def persist_compile_cache(device: torch.device) -> Path:

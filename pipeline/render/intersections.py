@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.render.intersect_kernel import intersect_kernel
+
 
 @dataclass(frozen=True)
 class TileGrid:
@@ -100,19 +102,33 @@ def _clamped_to_grid(tiles: torch.Tensor, grid: TileGrid) -> torch.Tensor:
 
 
 def intersect_tiles(
-    means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, grid: TileGrid, capacity: int
+    means2d: torch.Tensor,
+    radii: torch.Tensor,
+    depths: torch.Tensor,
+    grid: TileGrid,
+    capacity: int,
+    kernel: bool = True,
 ) -> TileIntersections:
     """The sorted (tile, depth) intersections of `grid.images` images at `capacity` entries.
 
     means2d [I, N, 2], radii [I, N, 2] int32, depths [I, N] metres (camera z). No host read:
-    every size is `capacity` or the inputs'. Cost: O(capacity log(I N)) for the entry-to-Gaussian
-    search, and one sort of `capacity` keys (gsplat sorts the true count).
+    every size is `capacity` or the inputs'. On CUDA our kernel builds it (`intersect_kernel`,
+    unless `kernel` is False); the tensor version costs O(capacity log(I N)) for the
+    entry-to-Gaussian search and one sort of `capacity` 64-bit keys (gsplat sorts the true count).
     """
     images, n = depths.shape
     first, end = tile_ranges(means2d, radii, grid)
     span = (end - first).reshape(-1, 2)  # [I N, 2] tiles across, down
     counts = span[:, 0] * span[:, 1]  # [I N]
     ends = torch.cumsum(counts, 0)  # [I N] exclusive end of each Gaussian's entries
+    module = intersect_kernel(depths.device) if kernel and depths.is_cuda else None
+    if module is not None:
+        keys, ids = module.intersect_tiles_fixed(
+            means2d.detach().float().contiguous(), radii.int().contiguous(), depths.detach().float().contiguous(),
+            ends, grid.tile_size, grid.tiles_x, grid.tiles_y, grid.tile_bits, grid.image_bits, capacity,
+            grid.padding_key,
+        )  # fmt: skip
+        return TileIntersections(keys, ids, ends[-1])
     entry = torch.arange(capacity, device=depths.device)
     owner = torch.searchsorted(ends, entry, right=True).clamp(max=images * n - 1)  # [capacity] flat image*N+gaussian
     local = entry - (ends[owner] - counts[owner])

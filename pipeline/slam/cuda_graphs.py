@@ -57,13 +57,22 @@ class GraphCache(Generic[T]):
 
     def _record(self, inputs: tuple[torch.Tensor, ...]) -> _Recorded[T]:
         static = tuple(t.clone() for t in inputs)
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            for _ in range(WARMUP_CALLS):
-                self.fn(*static)
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            output = self.fn(*static)
+        graph, output = record(lambda: self.fn(*static))
         return _Recorded(graph, static, output)
+
+
+def record(fn: Callable[[], T], warmup: int = WARMUP_CALLS) -> tuple[torch.cuda.CUDAGraph, T]:
+    """`fn` called `warmup` times on a side stream, then recorded once -> (the graph, the
+    recording's output, whose memory each replay rewrites). The warm-up calls run for real (an
+    optimiser step moves its parameters). Recording is `thread_local`: other threads of the
+    process (the upload's side-stream copies) go on meanwhile, which the global mode refuses."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(warmup):
+            fn()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+        output = fn()
+    return graph, output

@@ -10,6 +10,7 @@ from gpu_scenes import TOLERANCE, leaves, loss_of, random_pose, random_scene, re
 from pipeline.geometry import invert_pose
 from pipeline.render.reference import render_reference
 from pipeline.render.types import Camera, Gaussians, RenderOutput
+from pipeline.slam.cuda_graphs import record
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 WIDTH, HEIGHT = 320, 240
@@ -114,22 +115,13 @@ def test_the_fixed_capacity_render_replays_as_a_cuda_graph() -> None:
     view = camera.w2c.clone().requires_grad_(True)
 
     def step() -> torch.Tensor:
+        for tensor in (view, *vars(g).values()):
+            tensor.grad = None  # the recorded backward writes fresh gradients in the graph's memory
         out = render(g, Camera(view, camera.intrinsics, WIDTH, HEIGHT))
-        loss = loss_of(out, weights)
-        loss.backward()
+        loss_of(out, weights).backward()
         return out.color
 
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(2):
-            step()
-    torch.cuda.current_stream().wait_stream(side)
-    for tensor in (view, *vars(g).values()):
-        tensor.grad = None
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        color = step()
+    graph, color = record(step, warmup=2)
     moved = invert_pose(invert_pose(camera.w2c) @ _small_motion(camera.w2c.device))
     with torch.no_grad():
         view.copy_(moved)  # the recorded backward writes the gradients afresh: nothing to zero
@@ -148,3 +140,26 @@ def _small_motion(device: torch.device) -> torch.Tensor:
     from pipeline.geometry import se3_exp
 
     return se3_exp(torch.tensor([0.01, -0.015, 0.005, 0.02, -0.01, 0.01], dtype=torch.float64)).float().to(device)
+
+
+@pytest.mark.parametrize("images, capacity_share", [(1, 1.3), (2, 1.0), (2, 0.5)])
+def test_the_cuda_intersection_kernel_gives_the_tensor_versions_list(images: int, capacity_share: float) -> None:
+    """Our kernel (csrc/intersect_tiles.cu) against the tensor version: the same sorted keys and
+    ids, with room to spare, exactly full, and overflowing."""
+    from pipeline.render.intersect_kernel import intersect_kernel
+    from pipeline.render.intersections import TileGrid, intersect_tiles
+
+    device = torch.device("cuda")
+    assert intersect_kernel(device) is not None, "the extension did not build (see the log)"
+    generator = torch.Generator().manual_seed(images)
+    n = 30_000
+    means2d = (torch.rand(images, n, 2, generator=generator) * torch.tensor([700.0, 540.0]) - 30).to(device)
+    radii = torch.randint(0, 40, (images, n, 2), generator=generator, dtype=torch.int32).to(device)
+    depths = (torch.rand(images, n, generator=generator) * 5 + 0.1).to(device)
+    grid = TileGrid(images, 640, 480)
+    full = intersect_tiles(means2d, radii, depths, grid, 1 << 22, kernel=False)
+    capacity = int(capacity_share * int(full.count))
+    tensor = intersect_tiles(means2d, radii, depths, grid, capacity, kernel=False)
+    cuda = intersect_tiles(means2d, radii, depths, grid, capacity, kernel=True)
+    assert torch.equal(cuda.count, tensor.count)
+    assert torch.equal(cuda.keys, tensor.keys) and torch.equal(cuda.flatten_ids, tensor.flatten_ids)

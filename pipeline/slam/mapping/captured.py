@@ -26,6 +26,7 @@ import torch
 from pipeline.config import LossConfig, MappingConfig
 from pipeline.geometry import invert_pose
 from pipeline.render import Camera, CapacityRenderer, Gaussians
+from pipeline.slam.cuda_graphs import record
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, prune_mask
 from pipeline.slam.kernels import SlamKernels
 from pipeline.slam.keyframes import Keyframe
@@ -172,21 +173,11 @@ class CapturedMapping:
         self._peak = torch.zeros((), dtype=torch.long, device=device)
 
     def _record(self) -> None:
-        """Warm up on a side stream (compiled code settles, Adam's state is made), then record one
-        step. The warm-up steps move the buffers' contents; the pass loads its map afterwards.
-        Recording is `thread_local`: the pipeline's other threads (the upload's side-stream
-        copies) go on meanwhile, which the global mode refuses."""
+        """Warm up (compiled code settles, Adam's state is made), then record one step. The
+        warm-up steps move the buffers' contents; the pass loads its map afterwards."""
         assert self._shape is not None
         views = self._shape.views
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            for _ in range(3):
-                self._step(views)
-        torch.cuda.current_stream().wait_stream(side)
-        self._graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self._graph, capture_error_mode="thread_local"):  # other threads upload meanwhile
-            self._step(views)
+        self._graph, _ = record(lambda: self._step(views))
         self.rerecorded += 1
 
     @torch.no_grad()

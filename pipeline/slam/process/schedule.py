@@ -14,18 +14,26 @@ taken the `slam.max_lead` before it.
 
 The published state observers see (`SlamView`) is every frame tracked so far, the map version
 held for the last one and the keyframes' poses as mapping refined them.
+
+A mapping process that fails (dies, hangs, or is no longer waited for after a second signal)
+costs no tracked frame: a frame being tracked when it fails completes (not mapped), the next
+frame is refused before it is tracked (MappingProcessFailed), and a checkpoint then holds every
+frame tracked with the newest complete map version; `failure` says why and `unmapped` which
+frames the map lacks.
 """
 
 from __future__ import annotations
 
 import logging
 import random
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 import torch
 
 from pipeline.config import Config
+from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
@@ -39,6 +47,8 @@ from pipeline.slam.state import BackendState, Checkpoint
 from pipeline.slam.tracking.frontend import TrackingFrontend
 
 log = logging.getLogger("gsplatam")
+
+HOLD_AFTER_FAILURE_S = 1.0  # how long the newest version is waited for once the mapping process failed
 
 
 class ProcessSplaTAM:
@@ -79,6 +89,19 @@ class ProcessSplaTAM:
         held = self.held
         return () if held is None else held.keyframes
 
+    @property
+    def failure(self) -> str:
+        """Why the mapping process failed (empty while it works, and after a stop the user asked for)."""
+        return self.mapping.failure
+
+    def unmapped(self) -> list[int]:
+        """The frames handed to mapping that it never took (it ended first)."""
+        return self.mapping.unmapped()
+
+    def stop_waiting(self) -> None:
+        """Wait for the mapping process no more: what is complete is used (a second signal)."""
+        self.mapping.stop_waiting()
+
     def _new_chooser(self) -> KeyframeChooser | None:
         """The tracking side's keyframe choice at `mapping.rate=keyframe`; None: mapping takes every frame."""
         return KeyframeChooser(self.config.keyframes) if self.config.mapping.rate == "keyframe" else None
@@ -86,7 +109,9 @@ class ProcessSplaTAM:
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
         identity), then hand it to the mapping process unless it is lost (at keyframe rate:
-        unless it is lost or no keyframe)."""
+        unless it is lost or no keyframe). The first frame's step ends once its map is
+        published, so the frame taken after that wait is the newest (live), as under the
+        sequential schedule. MappingProcessFailed before tracking, never after."""
         self.mapping.check()
         first = self.frontend.frames_done == 0
         caught_up = self.mapping.caught_up()  # before the hold: the version held then holds every keyframe
@@ -96,7 +121,12 @@ class ProcessSplaTAM:
         if first:
             self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
-        result.mapped = not result.lost and self._hand_over(tracked, result, is_last, caught_up)
+        try:
+            result.mapped = not result.lost and self._hand_over(tracked, result, is_last, caught_up)
+            if first and result.mapped:
+                self.mapping.hold_newest(self._first_version)
+        except MappingProcessFailed:  # the frame is tracked and kept; the next one is refused
+            result.mapped = False
         result.map_version = 0 if latest is None else latest.number
         result.gaussians = 0 if latest is None else len(latest.gaussians)
         result.seconds.update(densify=0.0, mapping=0.0)
@@ -134,10 +164,15 @@ class ProcessSplaTAM:
 
     def checkpoint(self) -> Checkpoint:
         """Every frame tracked, with mapping's state as of now (a round trip to the mapping
-        process). If that process has failed, or has sent no state although a version is held:
-        the map version held last and the mapping state of the last checkpoint (or an empty
-        keyframe store), so that nothing tracked is lost."""
-        state = None if self.mapping.failure else self.mapping.state()[0]
+        process). If that process has failed (or fails meanwhile, or is no longer waited for),
+        or has sent no state although a version is held: the newest complete map version and
+        the mapping state of the last checkpoint (or an empty keyframe store), so that nothing
+        tracked is lost."""
+        try:
+            state = self.mapping.state()[0]
+        except MappingProcessFailed:
+            state = None
+            self.mapping.reader.hold(HOLD_AFTER_FAILURE_S)  # the newest version the process completed
         if state is not None:
             self._saved = state
         mapping = state or self._mapping_from_held()
@@ -172,10 +207,15 @@ class ProcessSplaTAM:
             newest = max(keyframes, key=lambda k: k.position)
             self.chooser.kept(replace(newest, c2w=newest.c2w.clone()))  # not a row of the version's stack
 
-    def finish(self, final_renders: int) -> int:
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders
-        over every keyframe); hold the final version. -> the final renders done."""
-        renders = self.mapping.finish(final_renders)
+        over every keyframe, ending at its next step once `should_stop()`); hold the final
+        version. -> the final renders done (0 where the mapping process failed: `failure`)."""
+        try:
+            renders = self.mapping.finish(final_renders, should_stop)
+        except MappingProcessFailed as exc:
+            log.debug("no final mapping: %s", exc)
+            return 0
         newest = self.mapping.newest_version()
         if newest >= self._first_version:  # none after a warm-up when no frame followed it
             self.mapping.hold_newest(newest)
