@@ -136,16 +136,18 @@ def test_keyframe_rate_maps_keyframes_only_never_a_lost_frame_and_keeps_a_pose_p
         assert checkpoint.frames_done == len(slam.poses) == 6 and checkpoint.mapping.frames_seen == 3
         assert [k.index for k in checkpoint.keyframes] == [0, 3, 5]
 
-        trajectory, poses = slam.frontend.trajectory, slam.poses
-        assert [None if a is None else a.position for a in trajectory.anchors] == [None, 0, 0, 0, 3, 3]
-        for keyframe in (3, 5):  # the final refinement moved them (the first keyframe stays: the gauge)
-            assert not torch.allclose(poses[keyframe], trajectory.tracked[keyframe], atol=1e-7)
-            torch.testing.assert_close(poses[keyframe], checkpoint.poses[keyframe])
-        torch.testing.assert_close(poses[0], trajectory.tracked[0])
+        anchors = slam.frontend.trajectory.anchors
+        assert [None if a is None else a.position for a in anchors] == [None, 0, 0, 0, 3, 3]
+        poses, tracked = checkpoint.poses, checkpoint.tracking.tracked_poses  # one snapshot: refinement goes on
+        assert tracked is not None
+        for keyframe, stored in zip((3, 5), checkpoint.keyframes[1:]):  # the first keyframe stays: the gauge
+            assert not torch.allclose(poses[keyframe], tracked[keyframe], atol=1e-7)  # refinement moved it
+            assert torch.equal(poses[keyframe], stored.c2w.cpu())
+        torch.testing.assert_close(poses[0], tracked[0])
         for position, keyframe in ((1, 0), (2, 0), (4, 3)):
-            correction = poses[keyframe] @ invert_pose(trajectory.tracked[keyframe])
-            torch.testing.assert_close(poses[position], correction @ trajectory.tracked[position])
-        assert not torch.allclose(poses[4], trajectory.tracked[4], atol=1e-7)
+            correction = poses[keyframe] @ invert_pose(tracked[keyframe])
+            torch.testing.assert_close(poses[position], correction @ tracked[position])
+        assert not torch.allclose(poses[4], tracked[4], atol=1e-7)
     finally:
         slam.close()
 
