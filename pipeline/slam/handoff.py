@@ -43,6 +43,4 @@ class TrackedFrame:
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the device
     position: int  # the frame's position among the run's poses
     ready: torch.cuda.Event | None = None  # recorded after tracking on its stream; None on the CPU
-    keyframe: bool = (
-        False  # chosen as a keyframe by the tracking side (mapping.rate=keyframe); else mapping's cadence says
-    )
+    keyframe: bool = False  # tracking chose it as a keyframe (mapping.rate=keyframe); else mapping's cadence says

@@ -114,6 +114,10 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["live.status_port=-1"], "live.status_port must be a port"),
         (["viewer.port=0"], "viewer.port must be a port"),
         (["run.save_every_s=0"], "run.save_every_s must be > 0"),
+        (["keyframes.min_overlap=1.2"], "keyframes.min_overlap must be in [0, 1]"),
+        (["keyframes.max_translation=0"], "keyframes.max_translation must be > 0"),
+        (["keyframes.min_coverage=-0.1"], "keyframes.min_coverage must be in [0, 1]"),
+        (["mapping.rate=frames"], "bad value for 'mapping.rate': 'frames': did you mean 'frame'?"),
     ],
 )
 def test_bad_overrides_name_the_key(overrides: list[str], message: str) -> None:
