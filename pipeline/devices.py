@@ -7,10 +7,9 @@ import socket
 
 import torch
 
-from pipeline.config import Config
+from pipeline.config import DEFAULT_PRESET_CPU, Config
 from pipeline.errors import UserError
 
-DEFAULT_PRESET_CPU = "tiny"
 LIVE_MAX_WIDTH_CPU = 128  # live frames are halved to this width for CPU runs (0: full size on a GPU)
 
 

@@ -14,19 +14,30 @@ import torch.nn.functional as F
 
 def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """[3, 3] rotation -> unit quaternion [4] (w, x, y, z) with w >= 0."""
+    return rotmats_to_quats(rot[None])[0]
+
+
+def rotmats_to_quats(rot: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] rotations -> unit quaternions [..., 4] (w, x, y, z) with w >= 0 (Shepperd's
+    method, in float64, the result in the input's dtype)."""
     m = rot.double()
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
     candidates = torch.stack(
         [
-            torch.stack([1 + trace, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]),
-            torch.stack([m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]]),
-            torch.stack([m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 + m[1, 1] - m[0, 0] - m[2, 2], m[1, 2] + m[2, 1]]),
-            torch.stack([m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 + m[2, 2] - m[0, 0] - m[1, 1]]),
-        ]
-    )  # each row is 4 q_k q (up to scale), best conditioned where its k-th entry is largest
-    best = torch.argmax(torch.stack([candidates[k, k] for k in range(4)]))
-    q = F.normalize(candidates.index_select(0, best[None])[0], dim=0)  # no read-back of `best`
-    q = torch.where(q[0] < 0, -q, q)
+            torch.stack([1 + trace, m21 - m12, m02 - m20, m10 - m01], dim=-1),
+            torch.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], dim=-1),
+            torch.stack([m02 - m20, m01 + m10, 1 + m11 - m00 - m22, m12 + m21], dim=-1),
+            torch.stack([m10 - m01, m02 + m20, m12 + m21, 1 + m22 - m00 - m11], dim=-1),
+        ],
+        dim=-2,
+    )  # [..., 4, 4]: each row is 4 q_k q (up to scale), best conditioned where its k-th entry is largest
+    best = torch.argmax(torch.diagonal(candidates, dim1=-2, dim2=-1), dim=-1)
+    rows = best[..., None, None].expand(*best.shape, 1, 4)
+    q = F.normalize(torch.take_along_dim(candidates, rows, dim=-2)[..., 0, :], dim=-1)  # no read-back of `best`
+    q = torch.where(q[..., :1] < 0, -q, q)
     return q.to(rot.dtype)
 
 

@@ -10,7 +10,7 @@ import torch
 
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose
-from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
 from pipeline.slam.losses import psnr, ssim_map
 
 
@@ -81,21 +81,34 @@ class ViewQuality:
     psnr_db: float
     ssim: float
     depth_l1_cm: float
+    depth_rmse_cm: float  # root of the mean squared depth error: large errors weigh more than in L1
+    render: RenderOutput | None = None  # the render compared, where asked for (keep_render)
 
 
 @torch.no_grad()
 def view_quality(
-    renderer: Renderer, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor, near: float, far: float
+    renderer: Renderer,
+    gaussians: Gaussians,
+    frame: DeviceFrame,
+    c2w: torch.Tensor,
+    near: float,
+    far: float,
+    keep_render: bool = False,
 ) -> ViewQuality:
-    """Render at the estimated pose and compare with the input over valid-depth pixels."""
+    """Render at the estimated pose and compare with the input over valid-depth pixels (the
+    render itself kept with `keep_render`)."""
     camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, near, far)
     out = renderer(gaussians, camera)
+    kept = out if keep_render else None
     valid = frame.depth > 0
     if not bool(valid.any()):
-        return ViewQuality(math.nan, math.nan, math.nan)
+        return ViewQuality(math.nan, math.nan, math.nan, math.nan, kept)
     color = out.color.clamp(0, 1)
+    error = (out.depth - frame.depth)[valid]
     return ViewQuality(
         psnr_db=psnr(color, frame.color, valid),
         ssim=float(ssim_map(color, frame.color)[valid].mean()),
-        depth_l1_cm=float((out.depth - frame.depth).abs()[valid].mean()) * 100.0,
+        depth_l1_cm=float(error.abs().mean()) * 100.0,
+        depth_rmse_cm=float(error.square().mean().sqrt()) * 100.0,
+        render=kept,
     )

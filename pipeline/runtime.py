@@ -137,7 +137,8 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
     """Run the pipelined graph to the end of the source, or until `stop` is set (then the
     frame in SLAM finishes and the rest is left). A stage failing before SLAM (a frame that
     cannot be read) ends the stream at that frame: SLAM and the sink finish the frames before
-    it, then its StageFailure is raised. A failing SLAM step or sink stops everything at once."""
+    it, then its StageFailure is raised; so does a failing SLAM step (the sink takes the results
+    before it). A failing sink stops everything at once."""
     q = graph.queue_size
     live = graph.source.live  # every queue up to SLAM then holds only the newest item (drops counted)
     q_in = 1 if live else q

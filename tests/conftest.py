@@ -14,6 +14,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from pipeline.config import DatasetConfig, GaussianConfig, SyntheticConfig, load_config
+from pipeline.extras import unavailable_extra
 from pipeline.io.outputs.intrinsics import CameraIntrinsics, write_intrinsics
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
@@ -62,6 +63,13 @@ def cabinet_sample() -> Path:
     if not (SHARED_CABINET / "rgb.txt").exists():
         pytest.skip(f"the shared cabinet loop is absent ({SHARED_CABINET})")
     return SHARED_CABINET
+
+
+def needs_extra(module: str) -> None:
+    """Skip the test, saying why (its pip command, or the system library it lacks), where
+    `module` of an extra is not installed or cannot load."""
+    if (why := unavailable_extra(module)) is not None:
+        pytest.skip(why)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -135,10 +143,37 @@ GT_ROOM = SyntheticConfig(frames=6, width=64, height=48, seed=5)
 GT_KEYFRAMES = (0, 3, 5)
 
 
-def write_gt_run(root: Path) -> Path:
+def checkpoint_with_loops(gaussians: int) -> Checkpoint:
+    """A checkpoint of 12 frames with loop closure's state: 3 nodes, a loop edge, a loop closed."""
+    from dataclasses import replace as replaced
+
+    from pipeline.slam.loops.detection import ClosedLoop, LoopTally
+    from pipeline.slam.loops.pose_graph import Edge, MotionSize
+    from pipeline.slam.state import LoopState
+
+    n = gaussians
+    means = torch.randn(n, 3, generator=torch.Generator().manual_seed(0))
+    map_ = Gaussians(means, torch.ones(n, 4), torch.zeros(n, 3), torch.zeros(n), torch.rand(n, 3))
+    checkpoint = make_checkpoint(map_, [], torch.eye(4).repeat(12, 1, 1))
+    f64 = torch.float64
+    loops = LoopState(
+        creator=torch.arange(n) % 3 - 1,  # nodes 0 and 1, and none (-1)
+        node_c2w=torch.eye(4, dtype=f64).repeat(3, 1, 1),
+        node_positions=[0, 5, 11],
+        odometry_information=torch.eye(6, dtype=f64).repeat(3, 1, 1),
+        loops=[Edge(0, 2, torch.eye(4, dtype=f64), 2 * torch.eye(6, dtype=f64), loop=True)],
+        tally=LoopTally(detected=4, verified=3, accepted=1, rejected=3, searches=3, search_s=0.25),
+        closed=[ClosedLoop(11, (0,), MotionSize(0.02, 1.0), 0.1, 0.05, 0.2)],
+    )
+    mapping = replaced(checkpoint.mapping, loops=loops, intrinsics=torch.eye(3))
+    tracking = replaced(checkpoint.tracking, tracked_poses=torch.eye(4).repeat(12, 1, 1) * 2)
+    return Checkpoint(tracking, mapping)
+
+
+def write_gt_run(root: Path, room: SyntheticConfig = GT_ROOM) -> Path:
     """A run folder whose map is seeded from the room's exact depth at its exact poses (no SLAM):
     exports are checked against known geometry, not against tracking error."""
-    write_synthetic(root / "room", GT_ROOM, progress=False)
+    write_synthetic(root / "room", room, progress=False)
     dataset = open_dataset(DatasetConfig(path=str(root / "room")))
     frames = [dataset.decode(ref) for ref in dataset.refs]
     keyframes, gaussians = [], None
@@ -159,5 +194,5 @@ def write_gt_run(root: Path) -> Path:
     folder = RunFolder(root / "run")
     folder.write_config(replace(load_config("tiny"), dataset=DatasetConfig(path=str(root / "room"))))
     folder.write_state(checkpoint, RunDescription("room"), np.array([r.timestamp for r in dataset.refs]), None)
-    write_intrinsics(folder.intrinsics, CameraIntrinsics.of_matrix(frames[0].intrinsics, GT_ROOM.width, GT_ROOM.height))
+    write_intrinsics(folder.intrinsics, CameraIntrinsics.of_matrix(frames[0].intrinsics, room.width, room.height))
     return folder.path

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from pipeline.app.bench_matrix import ABLATIONS, SYNTHETIC_SEQUENCES
 from pipeline.app.report import WARMUP_FRAMES, versions
 from pipeline.app.run import run_slam
 from pipeline.config import Config, load_config
@@ -24,64 +25,6 @@ from pipeline.io.files.atomic import atomic_write_text
 from pipeline.io.outputs.run_metrics import RunMetrics
 
 log = logging.getLogger("gsplatam")
-
-# Side-by-side switches; each is compared with the default configuration in the same invocation.
-ABLATIONS: dict[str, tuple[str, ...]] = {
-    "default": (),
-    "sync-loader": ("run.loader=sync",),
-    "no-compile": ("run.compile=off",),
-    "packed": ("render.packed=true",),
-    "3d-anisotropic": ("gaussians.isotropic=false",),
-    "2d-isotropic": ("gaussians.kind=2d",),
-    "2d-anisotropic": ("gaussians.kind=2d", "gaussians.isotropic=false"),
-    "sequential": ("slam.schedule=sequential",),
-    "views2": ("mapping.views_per_step=2",),
-    "views3": ("mapping.views_per_step=3",),
-    "selective-adam": ("mapping.optimizer=selective_adam",),
-    "adam": ("tracking.method=adam",),  # SplaTAM's tracker, whatever the preset's default
-    "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
-    "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
-    "process": ("slam.schedule=process",),  # mapping in its own process, refining between frames
-    "process-views2": ("slam.schedule=process", "mapping.views_per_step=2"),
-    "process-lead1": ("slam.schedule=process", "slam.max_lead=1"),
-    "process-no-refine": ("slam.schedule=process", "mapping.refine_while_idle=false"),
-    "process-fixed-poses": ("slam.schedule=process", "mapping.refine_pose_lr=0"),
-    "final-iters": ("mapping.final_iters=600",),  # then 600 view renders over every keyframe
-    "process-final": ("slam.schedule=process", "mapping.final_iters=600"),
-    "process-no-sample": ("slam.schedule=process", "run.kernel_sample=off"),  # the kernel sampler's own cost
-    "loops": ("loops.enabled=true",),  # loop closure on the keyframe pose graph
-    "process-loops": ("slam.schedule=process", "loops.enabled=true"),
-    "process-one-render": (  # align before large steps were followed: one render, no wide schedule
-        "slam.schedule=process",
-        "tracking.align_max_renders=1",
-        "tracking.align_wide_iters=10,6,4",
-    ),
-    "process-adjust": ("slam.schedule=process", "mapping.adjust_window=5"),  # local bundle adjustment at each keyframe
-    "process-adjust-loops": ("slam.schedule=process", "mapping.adjust_window=5", "loops.enabled=true"),
-}
-
-
-# Generated sequences by name; any other sequence is a dataset folder.
-SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
-    "synthetic": (),  # the Replica-like room, 1200x680 on a GPU
-    "synthetic-fast": ("synthetic.speed=1.0",),  # the same room, the camera 3.3x faster (1 m/s)
-    "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
-        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",
-        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
-    ),
-    "synthetic-loops": (  # TUM-like, twice round the room at 0.75 m/s: a long sequence that revisits places
-        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.loops=2", "synthetic.speed=0.75",
-        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
-    ),
-    "synthetic-fast-loops": (  # TUM-like, twice round the room at 1 m/s (3.3 cm a frame): fast steps, then revisits
-        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.loops=2", "synthetic.speed=1.0",
-        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
-    ),
-    "synthetic-trap": (  # TUM-like in the room of look-alike halves: no place is revisited
-        "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480", "synthetic.trap=true", "synthetic.speed=0.75",
-        "synthetic.depth_noise=0.0015", "synthetic.holes=0.02", "synthetic.time_jitter=0.004",
-    ),
-}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -121,19 +64,26 @@ def run_cell(
     cell: Cell, base_overrides: list[str], runs: Path, device: torch.device, progress: bool, profile: bool
 ) -> dict[str, Any]:
     """Run one cell here, on `device` (this process, or a Ray worker) -> its row, with where it ran
-    and its wall time. A cell that fails gives a row holding its error, so the rest of a matrix goes on."""
+    and its wall time. A cell that fails gives a row holding its error, so the rest of a matrix
+    goes on; one stopped by a signal (SIGINT, SIGTERM) is marked `interrupted`: the matrix stops."""
     start = time.perf_counter()
+    interrupted = False
     try:
         config = cell_config(cell, base_overrides, runs)
         # a cell's run folder is scratch: a later benchmark of the same cell replaces it
         metrics = run_slam(config, device, profile_trace=profile, progress=progress, overwrite=True).metrics
         if metrics is None:
+            interrupted = True
             raise UserError("interrupted before its first frame")
+        interrupted = metrics.interrupted
         row = row_of(cell, metrics)
     except Exception as exc:  # any failure of this cell, reported in its row
         log.error("bench: %s failed: %s", cell.name, exc)
         row = failed_row(cell, exc)
-    return {**row, **placement(), "wall_s": time.perf_counter() - start}
+    except KeyboardInterrupt:  # a signal outside SLAM (the room's generation, the run folder's setting up)
+        interrupted = True
+        row = failed_row(cell, UserError("interrupted"))
+    return {**row, **placement(), "wall_s": time.perf_counter() - start, "interrupted": interrupted}
 
 
 def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
@@ -181,10 +131,12 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "keyframes_psnr_before_final_db": before.keyframes_psnr_db if before else None,
         "ssim": render.ssim if render else None,
         "depth_l1_cm": render.depth_l1_cm if render else None,
+        "depth_rmse_cm": render.depth_rmse_cm if render else None,
         "lost_frames": metrics.lost_frames,
         "unmapped_frames": metrics.unmapped_frames,
         "large_steps": steps.steps if steps else None,
         "large_step_error_cm": steps.mean_cm if steps and steps.steps else None,
+        "frames_mapped": process["frames_mapped"] if process else metrics.frames_this_run - metrics.unmapped_frames,
         "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
         "loops_detected": loops.detected if loops else None,
         "loops_accepted": loops.accepted if loops else None,
@@ -198,16 +150,42 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
     }
 
 
-def add_ratios(rows: list[dict[str, Any]]) -> None:
-    """Each variant's total time, ATE and PSNR as ratios to the default of its sequence and preset."""
-    ok_defaults = (r for r in rows if r["variant"] == "default" and r["repeat"] == 0 and not r["error"])
-    defaults = {(r["sequence"], r["preset"]): r for r in ok_defaults}
+RATIO_KEYS = ("total_ms", "fps_steady", "ate_rmse_cm", "psnr_db")
+
+
+def add_ratios(rows: list[dict[str, Any]]) -> str:
+    """Each row's total time, frames/s, ATE and PSNR as ratios (`<key>_ratio`) to its reference
+    row -> what the reference is, for the table's header. The reference: with several variants,
+    the first variant of the same sequence and preset; else, with several presets, the first
+    preset of the same sequence; else, with repeats, the first run of the same cell; else none
+    (one cell per sequence: no ratio, where every one would read 1.00)."""
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    presets = list(dict.fromkeys(r["preset"] for r in rows))
+    if len(variants) > 1:
+        described = f"to variant '{variants[0]}' of the same sequence and preset"
+
+        def reference_of(row: dict[str, Any]) -> tuple[Any, ...]:
+            return (row["sequence"], row["preset"], variants[0], 0)
+    elif len(presets) > 1:
+        described = f"to preset '{presets[0]}' of the same sequence"
+
+        def reference_of(row: dict[str, Any]) -> tuple[Any, ...]:
+            return (row["sequence"], presets[0], row["variant"], 0)
+    else:
+        described = "to the first run of the same cell (--repeats)"
+
+        def reference_of(row: dict[str, Any]) -> tuple[Any, ...]:
+            return (row["sequence"], row["preset"], row["variant"], 0)
+
+    rows_by = {(r["sequence"], r["preset"], r["variant"], r["repeat"]): r for r in rows if not r["error"]}
+    comparable = any(reference_of(r) != (r["sequence"], r["preset"], r["variant"], r["repeat"]) for r in rows)
     for row in rows:
-        base = defaults.get((row["sequence"], row["preset"]))
-        for key in ("total_ms", "fps_steady", "ate_rmse_cm", "psnr_db"):
+        base = rows_by.get(reference_of(row)) if comparable else None
+        for key in RATIO_KEYS:
             value = row.get(key)
-            ok = base is not None and value is not None and base[key]
+            ok = base is not None and value is not None and base.get(key)
             row[f"{key}_ratio"] = value / base[key] if base is not None and ok else None
+    return described if comparable else "none (one cell per sequence)"
 
 
 def run_matrix(
@@ -219,12 +197,17 @@ def run_matrix(
     profile: bool = False,
 ) -> dict[str, Any]:
     """Run every cell here on `device`, one after the other; run folders (and the generated
-    synthetic room) go under `runs`."""
+    synthetic room) go under `runs`. A signal stops the matrix after the cell it interrupted
+    (whose run folder is written, or removed when it had saved nothing): the report holds the
+    cells run."""
     start = time.perf_counter()
     rows = []
     for done, cell in enumerate(cells):
         log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
         rows.append(run_cell(cell, base_overrides, runs, device, progress, profile))
+        if rows[-1]["interrupted"]:
+            log.info("bench: stopped by a signal after %d of %d cells", done + 1, len(cells))
+            break
     return report_of(rows, base_overrides, profile, time.perf_counter() - start, device, cluster=None)
 
 
@@ -239,7 +222,7 @@ def report_of(
     """The report of a whole matrix (rows in matrix order): the same keys for a local run and one
     on a Ray cluster (`cluster`: its address, nodes and what each cell declared; None: local);
     `device` is this machine's (the driver's, on a cluster)."""
-    add_ratios(rows)
+    reference = add_ratios(rows)
     return {
         "device": describe(device, load_config("base")),
         "driver": _driver_version(device),
@@ -248,6 +231,8 @@ def report_of(
         "profiled": profile,
         "cluster": cluster,
         "wall_s": wall_s,
+        "ratios": reference,
+        "interrupted": any(row.get("interrupted") for row in rows),
         "rows": rows,
     }
 
@@ -273,8 +258,8 @@ COLUMNS = [
     ("warmup_s", "{:.1f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
-    ("depth_l1_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
-    ("large_steps", "{}"), ("large_step_error_cm", "{:.2f}"),
+    ("depth_l1_cm", "{:.2f}"), ("depth_rmse_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),
+    ("frames_mapped", "{}"), ("large_steps", "{}"), ("large_step_error_cm", "{:.2f}"),
     ("ate_before_loops_cm", "{:.2f}"), ("loops_detected", "{}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"),
     ("loops_closed", "{}"),
     ("loop_search_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
@@ -300,7 +285,9 @@ def markdown(report: dict[str, Any]) -> str:
             else ""
         ),
         f"Ran on {where}: {len(rows)} cells in {report['wall_s']:.1f} s"
-        + (f", {len(_failed(rows))} failed." if _failed(rows) else "."),
+        + (f", {len(_failed(rows))} failed." if _failed(rows) else ".")
+        + (" Stopped by a signal: the last cell is the one it interrupted." if report.get("interrupted") else ""),
+        f"Ratios (*_ratio): {report.get('ratios', 'to the default variant')}.",
         "",
         "| " + " | ".join(name for name, _ in columns) + " |",
         "|" + "---|" * len(columns),
@@ -321,7 +308,3 @@ def write_report(report: dict[str, Any], out: Path, stem: str) -> tuple[Path, Pa
     atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
     atomic_write_text(md_path, markdown(report))
     return json_path, md_path
-
-
-def default_variants(ablations: bool) -> list[str]:
-    return list(ABLATIONS) if ablations else ["default"]

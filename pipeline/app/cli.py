@@ -9,7 +9,7 @@ import os
 import signal
 import sys
 from types import FrameType
-from typing import NoReturn, Protocol
+from typing import Any, NoReturn, Protocol
 
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -17,15 +17,19 @@ from pipeline import __version__
 from pipeline.app.commands import (
     bench,
     config,
+    download,
     export,
     fake_nerfcapture,
     fake_record3d,
+    render,
     run,
     serve,
     synth,
     view,
 )
+from pipeline.app.commands.options import SETTINGS_EPILOG, settings_epilog
 from pipeline.app.logs import configure_logging
+from pipeline.config.choices import did_you_mean, nearest
 from pipeline.errors import MappingProcessFailed, StageFailure, UserError
 from pipeline.extras import missing_extra
 
@@ -51,6 +55,8 @@ COMMANDS: dict[str, Command] = {
     "fake-nerfcapture": fake_nerfcapture,
     "view": view,
     "export": export,
+    "render": render,
+    "download": download,
     "config": config,
 }
 
@@ -61,6 +67,22 @@ EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # 141: what a shell reports for a write
 class Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+    def format_help(self) -> str:
+        if self.epilog == SETTINGS_EPILOG:
+            self.epilog = settings_epilog()
+        return super().format_help()
+
+    def _check_value(self, action: argparse.Action, value: Any) -> None:
+        """A value outside an option's choices, answered with the nearest ones (did you mean)."""
+        choices = action.choices
+        if choices is not None and value not in choices:
+            names = [str(c) for c in choices]
+            hint = did_you_mean(nearest(str(value), names))
+            listed = ", ".join(map(repr, names))
+            raise argparse.ArgumentError(
+                action, f"invalid choice: {value!r}" + (f": {hint}" if hint else "") + f" (choose from {listed})"
+            )
 
 
 def _common_options() -> Parser:
@@ -77,7 +99,10 @@ def _common_options() -> Parser:
     return common
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser: every command's arguments, or (`only`, the command given) that
+    command's alone, the others by name and help line (a command's arguments may import what
+    takes seconds to load: the export registry's writers)."""
     parser = Parser(
         prog="gsplatam",
         description="Real-time RGB-D SLAM with Gaussian splatting (SplaTAM on gsplat).",
@@ -87,7 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     common = _common_options()
     for name, command in COMMANDS.items():
-        command.add_arguments(sub.add_parser(name, help=command.HELP, parents=[common]))
+        # the description and epilog as written (a command's list of settings keeps its lines)
+        formatter = argparse.RawDescriptionHelpFormatter
+        command_parser = sub.add_parser(name, help=command.HELP, parents=[common], formatter_class=formatter)
+        if only is None or only == name:
+            command.add_arguments(command_parser)
     return parser
 
 
@@ -114,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    given = sys.argv[1:] if argv is None else argv
+    command = next((word for word in given if not word.startswith("-")), None)  # a command's name, or a typo
+    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
     _configure_logging(args)
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     # SIGINT too, even where the process started with it ignored (a job a shell put in the
@@ -134,14 +165,15 @@ def _main(argv: list[str] | None) -> int:
     except StageFailure as exc:
         if isinstance(exc.cause, UserError):
             return _fail(str(exc))
-        if isinstance(exc.cause, MappingProcessFailed):  # what was processed is written: exit 1, not 2
-            print(
-                f"gsplatam: error: {exc.cause}; what was processed is saved (continue with --resume)", file=sys.stderr
-            )
+        if isinstance(exc.cause, MappingProcessFailed):  # what was processed is written (said above): exit 1
+            print(f"gsplatam: error: {exc.cause}", file=sys.stderr)
             return 1
         if isinstance(exc.cause, ImportError) and (message := missing_extra(exc.cause)):
             return _fail(f"stage '{exc.stage}': {message}")
         raise
+    except MappingProcessFailed as exc:  # after SLAM: what the mapping process completed is written (said above)
+        print(f"gsplatam: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("gsplatam: interrupted", file=sys.stderr)
         return 130

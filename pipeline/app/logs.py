@@ -5,7 +5,9 @@ from __future__ import annotations
 import logging
 import sys
 
-CHATTY = ("aioice", "aiortc", "websockets")  # per-candidate ICE and per-connection logs at INFO
+# Libraries that log at INFO what a user need not read: per-candidate ICE and per-connection logs,
+# NumExpr's thread count (imported by pandas, which Ray imports), matplotlib's font cache.
+CHATTY = ("aioice", "aiortc", "websockets", "numexpr", "matplotlib")
 
 
 def configure_logging(prefix: str = "gsplatam") -> None:

@@ -11,6 +11,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import sysconfig
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,8 @@ def format_table(metrics: RunMetrics) -> str:
     if metrics.render is not None:
         r = metrics.render
         rows += [("PSNR", f"{r.psnr_db:.2f} dB"), ("SSIM", f"{r.ssim:.3f}"), ("depth L1", f"{r.depth_l1_cm:.2f} cm")]
+        if r.depth_rmse_cm is not None:
+            rows.append(("depth RMSE", f"{r.depth_rmse_cm:.2f} cm"))
     if metrics.time is not None:
         t = metrics.time
         rows += [
@@ -152,14 +155,29 @@ def next_steps(folder: RunFolder) -> list[str]:
     gsplatam, root = gsplatam_command(), shlex.quote(str(folder.path))
     lines = [_needing("viser", f"{gsplatam} view {root}")]
     if folder.groundtruth.is_file():
-        evo = f"evo_ape tum {shlex.quote(str(folder.groundtruth))} {shlex.quote(str(folder.trajectory))} -a"
-        lines.append(
-            (evo if shutil.which("evo_ape") else f"{pip_command()} install evo && {evo}") + "   # the same ATE, by evo"
-        )
+        lines.append(evo_command(folder) + "   # the same ATE, by evo")
     lines += [_needing(exporter.NEEDS, f"{gsplatam} export {root} --to {fmt}") for fmt, exporter in EXPORTERS.items()]
     if folder.recorded():
         lines.append(f"{gsplatam} run {shlex.quote(str(folder.recording))}   # the live session again, offline")
     return [f"  {line}" for line in lines]
+
+
+def evo_command(folder: RunFolder) -> str:
+    """evo's ATE of the run against its reference, as a shell runs it: evo_ape of this Python's
+    environment by its absolute path (a virtual environment need not be activated), else the one
+    on the PATH, else evo installed into this environment first."""
+    arguments = f"tum {shlex.quote(str(folder.groundtruth))} {shlex.quote(str(folder.trajectory))} -a"
+    beside = Path(sysconfig.get_path("scripts")) / "evo_ape"
+    if beside.is_file():
+        return f"{shlex.quote(str(beside))} {arguments}"
+    if shutil.which("evo_ape"):
+        return f"evo_ape {arguments}"
+    return f"{pip_command()} install evo && {shlex.quote(str(beside))} {arguments}"
+
+
+def resume_command(folder: Path) -> str:
+    """The command that continues the run in `folder`, as a shell runs it."""
+    return f"{gsplatam_command()} run --resume {shlex.quote(str(folder))}"
 
 
 def gsplatam_command() -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.errors import UserError
+from pipeline.io.outputs.checkpoint import read_description
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.slam.state import Checkpoint
@@ -24,6 +25,17 @@ SAME_RUN = {
     "gaussians": "Gaussian kind (gaussians.kind)",
     "isotropic": "gaussians.isotropic",
 }
+
+
+def refuse_a_live_run(folder: RunFolder) -> None:
+    """UserError at once where `folder` holds a live session, which no dataset continues (before
+    its config is read, so no dataset is opened or room generated for it)."""
+    saved = read_description(folder.checkpoint)
+    if saved is not None and saved.live:
+        replay = (
+            f"; {folder.recording} runs it again offline: gsplatam run {folder.recording}" if folder.recorded() else ""
+        )
+        raise UserError(f"{folder.path} is a live run ({saved.source}): --resume continues dataset runs only{replay}")
 
 
 def read_resumable(folder: RunFolder, expected: RunDescription, frames: int) -> Checkpoint:

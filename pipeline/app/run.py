@@ -12,25 +12,28 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.app.report import run_summary
+from pipeline.app.report import resume_command, run_summary
 from pipeline.app.resume import read_resumable
 from pipeline.app.session import Session, execute_session, open_session
 from pipeline.app.setup import Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
-from pipeline.errors import OutputError, StageFailure, UserError
+from pipeline.errors import MappingProcessFailed, OutputError, StageFailure, UserError
 from pipeline.frame import DeviceFrame
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.pictures import render_picture, spread, write_render_picture, write_trajectory_png
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_folders import check_output, new_run_folder, resumed_run_folder
 from pipeline.io.outputs.run_metrics import AteRecord, RenderRecord, RunMetrics, StepRecord, StopRecord
 from pipeline.io.sources.datasets.base import Dataset
+from pipeline.io.sources.datasets.depth_scale import check_depth_scale
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.source import DatasetSource
 from pipeline.io.sources.datasets.synthetic import synthetic_for
 from pipeline.io.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.metrics import view_quality
-from pipeline.render import Gaussians
+from pipeline.render import Gaussians, RenderOutput
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
 from pipeline.stages.upload import make_uploader
@@ -56,10 +59,11 @@ def run_slam(
     (see `run_folders`; `overwrite` replaces a named one's earlier run); `resume` continues the
     run folder of an earlier run from its checkpoint, once it is known to be the same run.
 
-    Outputs are saved every `run.save_every_s` and at the end. A frame that cannot be read, or a
-    folder that cannot be written, ends the run: what was processed is written and marked in
-    metrics.json, then the StageFailure is raised. A signal after SLAM (evaluation, writing)
-    cuts the evaluation short; the outputs are still written."""
+    Outputs are saved every `run.save_every_s` and at the end. A frame that cannot be read, a
+    folder that cannot be written or a mapping process that fails ends the run: what was
+    processed is written and marked in metrics.json, then the StageFailure (or, after SLAM,
+    MappingProcessFailed) is raised. A signal after SLAM cuts the final refinement and the
+    evaluation short (a second one: SLAM waits for nothing more); the outputs are still written."""
     if resume is None:
         check_output(Path(config.run.output))  # before a generated room is cached there
     dataset, setup = _open_dataset(config, device, progress)
@@ -73,10 +77,14 @@ def run_slam(
         checkpoint = read_resumable(folder, run, len(dataset)) if resume is not None else None
         session = _open(setup, dataset, folder, run, checkpoint, progress)
         try:
-            with signals_noted() as signalled:
+            with signals_noted(on_again=session.slam.stop_waiting) as signalled:
                 report = _execute(session, dataset, profile_trace)
                 before_final = _map_to_the_end(session, dataset, report, signalled, progress)
                 if session.slam.gaussians is None:
+                    if session.slam.failure:  # before the first map version: frames.csv and metrics.json
+                        failure = StageFailure("mapping", None, MappingProcessFailed(session.slam.failure))
+                        _write_after_failure(session, dataset, failure)
+                        raise failure
                     if report.interrupted:
                         log.info("interrupted before the first frame was processed: nothing to write")
                         return RunResult(session.folder, None)
@@ -130,16 +138,25 @@ def _map_to_the_end(
     session: Session, dataset: Dataset, report: RuntimeReport, signalled: threading.Event, progress: bool
 ) -> RenderRecord | None:
     """Let mapping finish the frames it was given, then, unless SLAM was interrupted or did not
-    run, refine over every keyframe (`mapping.final_iters` view renders). -> the render metrics
-    before that refinement (None without it)."""
-    final = session.config.mapping.final_iters if session.log.results and not report.interrupted else 0
+    run, refine over every keyframe (`mapping.final_iters` view renders; a signal cuts it short
+    at its next step). -> the render metrics before that refinement (None without it)."""
+    slam, final = session.slam, session.config.mapping.final_iters
+    if not session.log.results or report.interrupted or not slam.frames_done:
+        final = 0
     before = None
-    if final and session.slam.frames_done:
-        session.slam.finish(0)
+    if final:
+        slam.finish(0)
+        if slam.failure or signalled.is_set():
+            return None
         before, _ = _render_metrics(session, dataset, signalled, progress)
-    renders = session.slam.finish(final)
-    if renders:
-        log.info("final refinement: %d view renders over every keyframe (mapping.final_iters)", renders)
+        log.info(
+            "final refinement: %d view renders over every keyframe (mapping.final_iters; Ctrl-C cuts it short)", final
+        )
+    renders = slam.finish(final, signalled.is_set)
+    if final and signalled.is_set():
+        log.info("final refinement cut short by a signal after %d of %d view renders", renders, final)
+    elif renders:
+        log.info("final refinement: %d view renders done", renders)
     return before
 
 
@@ -152,6 +169,7 @@ def _open_dataset(config: Config, device: torch.device, progress: bool) -> tuple
     under the output folder), and the config finished for it."""
     if config.dataset.path:
         dataset = open_dataset(config.dataset)
+        check_depth_scale(dataset, config.dataset)
         return dataset, finish_config(config, device, dataset.format)
     room = synthetic_for(config.synthetic, device)
     path = cached_synthetic(Path(config.run.output) / "synthetic", room, progress, device)
@@ -175,6 +193,8 @@ def _finish(
     `mapping.final_iters`). OutputError where a file could not be written (a full disk)."""
     checkpoint = session.slam.checkpoint()
     session.saver.save_now(checkpoint)
+    failure = session.slam.failure  # the mapping process failed after SLAM: what it completed is saved
+    _write_trajectory_plot(session.folder)
     poses = torch.stack(session.slam.poses).double().cpu().numpy()
     metrics = session.metrics(report, _ate_of(poses, dataset), checkpoint.mapping.loops)
     metrics = replace(metrics, large_steps=_steps_of(poses, dataset))
@@ -183,7 +203,11 @@ def _finish(
     earlier = session.folder.read_metrics() if not session.log.results else None  # a resume that only evaluates
     if earlier is not None:
         metrics = replace(metrics, runtime=earlier.runtime, time=earlier.time)
-    if report.interrupted:
+    stopped = None
+    if failure:
+        render, evaluation = None, "skipped: the run stopped on an error"
+        stopped = StopRecord("mapping", None, failure, session.saver.saved_frames)
+    elif report.interrupted:
         render, evaluation = None, "skipped: SLAM was interrupted (continue with --resume)"
     else:
         render, evaluation = _render_metrics(session, dataset, signalled, progress)
@@ -194,8 +218,12 @@ def _finish(
         evaluation=evaluation,
         interrupted=report.interrupted or signalled.is_set(),
         write_error=session.saver.error or None,  # a frames.csv line that could not be written
+        stopped=stopped,
     )
     session.folder.write_metrics(metrics)
+    if failure:
+        _say_saved(session)
+        raise MappingProcessFailed(failure)
     if session.saver.error:
         raise OutputError(f"{session.saver.error}; the other outputs are written")
     return metrics
@@ -234,15 +262,17 @@ def _references(dataset: Dataset, frames: int) -> np.ndarray | None:
 
 
 def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailure) -> None:
-    """Write what was processed before `failure` ended the run, and mark where and why it stopped
-    in metrics.json; a write that fails too is logged (the failure is what the user sees)."""
+    """Write what was processed before `failure` ended the run (every frame tracked; without a
+    map yet, frames.csv and metrics.json only), and mark where and why it stopped in
+    metrics.json; a write that fails too is logged (the failure is what the user sees)."""
     slam, saver = session.slam, session.saver
-    if slam.frames_done == 0 or slam.gaussians is None:
+    if slam.frames_done == 0:
         return
-    try:
-        saver.save_now(slam.checkpoint())
-    except OutputError as exc:
-        log.error("%s", exc)
+    if slam.gaussians is not None:
+        try:
+            saver.save_now(slam.checkpoint())
+        except OutputError as exc:
+            log.error("%s", exc)
     stopped = StopRecord(failure.stage, failure.frame, str(failure.cause), saver.saved_frames)
     metrics = session.metrics(None, _ate(session, dataset))
     metrics = replace(metrics, stopped=stopped, evaluation="skipped: the run stopped on an error")
@@ -251,13 +281,30 @@ def _write_after_failure(session: Session, dataset: Dataset, failure: StageFailu
     except OutputError as exc:
         log.error("%s", exc)
         return
+    _say_saved(session)
+
+
+def _say_saved(session: Session) -> None:
+    """The line after a run stopped on an error: what its folder holds now, which frames the map
+    lacks, and `--resume` where it can continue (a checkpoint was saved)."""
+    slam, saver, path = session.slam, session.saver, session.folder.path
+    unmapped = slam.unmapped()
+    lacks = f" (the map lacks frames {_listed(unmapped)}: tracked, never mapped)" if unmapped else ""
+    if not saver.saved_frames:
+        log.info(
+            "no map was made of the %d frames tracked: %s holds their rows only; run again", slam.frames_done, path
+        )
+        return
     log.info(
-        "saved %d of the %d frames processed in %s; once the cause is fixed: gsplatam run --resume %s",
-        saver.saved_frames,
-        slam.frames_done,
-        session.folder.path,
-        session.folder.path,
-    )
+        "saved %d of the %d frames processed in %s%s; once the cause is fixed: %s",
+        saver.saved_frames, slam.frames_done, path, lacks, resume_command(path),
+    )  # fmt: skip
+
+
+def _listed(indices: list[int]) -> str:
+    """`3, 4, 7` (the first ten, then how many more)."""
+    more = f" and {len(indices) - 10} more" if len(indices) > 10 else ""
+    return ", ".join(str(i) for i in indices[:10]) + more
 
 
 def _render_metrics(
@@ -271,12 +318,17 @@ def _render_metrics(
     assert gaussians is not None
     uploader = make_uploader(session.device, slots=2)
     picks = list(range(0, slam.frames_done, config.run.eval_every))
+    pictured = set(spread(picks, config.run.renders))
     scores = []
     for i in tqdm(picks, desc="evaluate", unit="frame", disable=not progress, dynamic_ncols=True):
         if signalled.is_set():
             break
         frame = uploader(dataset.decode(dataset.refs[i])).wait()
-        scores.append(view_quality(slam.renderer, gaussians, frame, poses[i], config.render.near, config.render.far))
+        near, far = config.render.near, config.render.far
+        score = view_quality(slam.renderer, gaussians, frame, poses[i], near, far, keep_render=i in pictured)
+        if score.render is not None:
+            _write_render_picture(session.folder, frame, score.render)
+        scores.append(score)
     done = (
         "complete" if len(scores) == len(picks) else f"cut short by a signal after {len(scores)} of {len(picks)} frames"
     )
@@ -286,12 +338,39 @@ def _render_metrics(
         psnr_db=float(np.mean([s.psnr_db for s in scores])),
         ssim=float(np.mean([s.ssim for s in scores])),
         depth_l1_cm=float(np.mean([s.depth_l1_cm for s in scores])),
+        depth_rmse_cm=float(np.mean([s.depth_rmse_cm for s in scores])),
         frames_evaluated=len(scores),
         every=config.run.eval_every,
     )
     if not signalled.is_set():
         render = replace(render, **_keyframe_psnr(session, gaussians, frame.intrinsics))
     return render, done
+
+
+def _write_render_picture(folder: RunFolder, frame: DeviceFrame, render: RenderOutput) -> None:
+    """renders/frameNNNNNN.png: the frame beside its render (colour, depth)."""
+    picture = render_picture(
+        frame.color.cpu().numpy(),
+        frame.depth.cpu().numpy(),
+        render.color.cpu().numpy(),
+        render.depth.cpu().numpy(),
+    )
+    try:
+        write_render_picture(folder.renders, frame.index, picture)
+    except OSError as exc:
+        raise OutputError(f"cannot write {folder.renders}: {exc.strerror or exc}") from None
+
+
+def _write_trajectory_plot(folder: RunFolder) -> None:
+    """trajectory.png from the trajectory (and reference) just saved; a plot that cannot be made
+    is logged, never the end of a run's outputs."""
+    try:
+        timestamps, estimate = read_tum_trajectory(folder.trajectory)
+        reference = read_tum_trajectory(folder.groundtruth)[1] if folder.groundtruth.is_file() else None
+        if len(estimate) >= 2 and (reference is None or len(reference) == len(estimate)):
+            write_trajectory_png(folder.trajectory_plot, timestamps, estimate, reference)
+    except (OSError, ValueError, np.linalg.LinAlgError) as exc:
+        log.warning("trajectory.png not written: %s", exc)
 
 
 def _keyframe_psnr(session: Session, gaussians: Gaussians, intrinsics: torch.Tensor) -> dict[str, Any]:

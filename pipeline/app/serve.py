@@ -24,10 +24,11 @@ from pipeline.app.session import Session, execute_session, open_session
 from pipeline.app.setup import LIVE_LAYOUT, Setup, finish_config
 from pipeline.app.signals import signals_noted
 from pipeline.config import Config
+from pipeline.errors import MappingProcessFailed, StageFailure
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_folders import new_run_folder
-from pipeline.io.outputs.run_metrics import AteRecord, FrameAges, RunMetrics
+from pipeline.io.outputs.run_metrics import AteRecord, FrameAges, RunMetrics, StopRecord
 from pipeline.io.sources.cameras import open_source
 from pipeline.io.sources.live.recording import RecordingSource
 from pipeline.runtime import Graph, RuntimeReport
@@ -172,11 +173,15 @@ def serve(
                 graph.services.append(control.service(read))
 
         try:
-            with signals_noted():
-                report = execute_session(session, on_graph=add_status)
+            with signals_noted(on_again=session.slam.stop_waiting):
+                report: RuntimeReport | StageFailure = _executed(session, add_status)
                 if recording is not None:
                     recording.close()  # complete before the final save, and before the viewer lingers
                 result = _save(session, report, recording.error if recording is not None else "")
+            if isinstance(report, StageFailure):
+                raise report
+            if session.slam.failure:
+                raise MappingProcessFailed(session.slam.failure)
             if result.metrics is not None:
                 session.linger(run_summary(result.metrics) + f"\n\nin {folder.path}")
             return result
@@ -186,20 +191,46 @@ def serve(
             session.close()
 
 
-def _save(session: Session, report: RuntimeReport, recording_error: str = "") -> ServeResult:
-    """The final save (map, trajectory, checkpoint) and metrics.json (with `recording_error`:
-    why the recording's last write failed, if it did)."""
-    session.slam.finish(0)  # the frames mapping was given
-    if session.slam.gaussians is None:
+def _executed(session: Session, add_status: Callable[[Graph], None]) -> RuntimeReport | StageFailure:
+    """The session's graph run to its end or a stop -> its report, or the failure that ended it
+    (raised once what was processed is saved)."""
+    try:
+        return execute_session(session, on_graph=add_status)
+    except StageFailure as failure:
+        return failure
+
+
+def _save(session: Session, ended: RuntimeReport | StageFailure, recording_error: str = "") -> ServeResult:
+    """The final save (map, trajectory, checkpoint: every frame processed) and metrics.json (with
+    where and why the session stopped, if it failed, and `recording_error`: why the recording's
+    last write failed, if it did)."""
+    slam, saver, folder = session.slam, session.saver, session.folder
+    slam.finish(0)  # the frames mapping was given
+    if slam.frames_done == 0:
         log.info("stopped before any frame was processed: nothing to save")
-        return ServeResult(session.folder, None)
-    checkpoint = session.slam.checkpoint()
-    session.saver.save_now(checkpoint)
+        return ServeResult(folder, None)
+    checkpoint = slam.checkpoint() if slam.gaussians is not None else None  # None: no map made yet
+    if checkpoint is not None:
+        saver.save_now(checkpoint)
+    report = ended if isinstance(ended, RuntimeReport) else None
     poses = referenced_poses(session.log.results)  # NeRFCapture's with live.device_pose=groundtruth
-    metrics = session.metrics(
-        report, AteRecord.between(*poses) if poses is not None else None, checkpoint.mapping.loops
-    )
-    write_error = "; ".join(e for e in (session.saver.error, recording_error) if e) or None
-    metrics = replace(metrics, interrupted=report.interrupted, write_error=write_error)
-    session.folder.write_metrics(metrics)
-    return ServeResult(session.folder, metrics)
+    ate = AteRecord.between(*poses) if poses is not None else None
+    metrics = session.metrics(report, ate, None if checkpoint is None else checkpoint.mapping.loops)
+    write_error = "; ".join(e for e in (saver.error, recording_error) if e) or None
+    stopped = _stop_record(ended, slam.failure, saver.saved_frames)
+    metrics = replace(metrics, interrupted=report is not None and report.interrupted, write_error=write_error)
+    folder.write_metrics(replace(metrics, stopped=stopped))
+    if stopped is not None:
+        replay = f"; gsplatam run {folder.recording} runs it again offline" if folder.recorded() else ""
+        log.info(
+            "saved %d of the %d frames processed in %s (a live session is not continued with --resume%s)",
+            saver.saved_frames, slam.frames_done, folder.path, replay,
+        )  # fmt: skip
+    return ServeResult(folder, metrics)
+
+
+def _stop_record(ended: RuntimeReport | StageFailure, failure: str, saved: int) -> StopRecord | None:
+    """Where and why the session stopped on an error (None: it ended or was stopped as asked)."""
+    if isinstance(ended, StageFailure):
+        return StopRecord(ended.stage, ended.frame, str(ended.cause), saved)
+    return StopRecord("mapping", None, failure, saved) if failure else None

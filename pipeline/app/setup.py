@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from pipeline.config import Config, validate, with_dataset_defaults, with_value
+from pipeline.config import Config, validate, with_absolute_dataset_path, with_dataset_defaults, with_value
 from pipeline.render import resolve_backend
 
 LIVE_LAYOUT = "tum"  # a phone's depth is a real sensor's, as TUM's: its per-dataset values
@@ -33,12 +33,14 @@ def finish_config(
     live: bool = False,
     changes: Sequence[tuple[str, Any]] = (),
 ) -> Setup:
-    """`config` with `changes` (dotted keys) made, the values SplaTAM tunes per dataset layout
+    """`config` with `changes` (dotted keys) made, the dataset's folder made absolute (not `live`), the values SplaTAM tunes per dataset layout
     (`layout`: replica or tum) filled in, the render backend chosen for `device` and, when `live`, the bounds of a session
     that runs for hours; UserError for a value out of range, ImportError when loop closure is
     on without GTSAM (the 'loops' extra)."""
     for key, value in changes:
         config = with_value(config, key, value)
+    if not live:  # a live run's dataset.path names its camera (record3d:URL)
+        config = with_absolute_dataset_path(config)
     config = with_dataset_defaults(config, layout)
     config = replace(config, render=replace(config.render, backend=resolve_backend(config.render, device)))
     if live:

@@ -39,8 +39,8 @@ def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
         window.show_trajectory(poses)
         if start is not None:
             window.look_from(start)
-        print(f"showing {len(gaussians):,} Gaussian centres from {ply} in an Open3D window (close it to quit)")
         try:
+            print(f"showing {len(gaussians):,} Gaussian centres from {ply} in an Open3D window (close it to quit)")
             window.wait_closed()
         except KeyboardInterrupt:
             pass  # a way to quit
@@ -55,8 +55,8 @@ def view_saved_map(path: Path, open3d: bool, host: str, port: int) -> None:
     if start is not None:
         viewer.look_from(start, poses[0][:3, 3])
     viewer.stats.content = f"{len(gaussians):,} Gaussians from {ply}"
-    print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)")
-    try:
+    try:  # from the line that says Ctrl-C quits, Ctrl-C quits (exit 0)
+        print(f"showing {len(gaussians):,} Gaussians at {viewer.url} (Ctrl-C to quit)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         pass  # the way to quit

@@ -1,16 +1,19 @@
 """Typed, frozen configuration: the schema (`schema.py`) and how a config is built (`loading.py`)."""
 
 from pipeline.config.loading import (
+    config_keys,
     load_config,
     parse_overrides,
     preset_config,
     to_toml,
     validate,
+    with_absolute_dataset_path,
     with_dataset_defaults,
     with_value,
 )
 from pipeline.config.schema import (
     DATASET_DEFAULTS,
+    DEFAULT_PRESET_CPU,
     PRESET_TRACKING,
     PRESETS,
     SYNTHETIC_CPU,
@@ -45,10 +48,10 @@ from pipeline.config.schema import (
 )
 
 __all__ = [
-    "DATASET_DEFAULTS", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
+    "DATASET_DEFAULTS", "DEFAULT_PRESET_CPU", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
     "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LoopConfig",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
     "ViewerKind", "switched_on",
-    "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_dataset_defaults", "with_value",
+    "config_keys", "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_absolute_dataset_path", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import inspect
 import io
+import textwrap
 import tokenize
 import typing
 from dataclasses import dataclass, fields, is_dataclass
@@ -16,7 +17,8 @@ from functools import cache
 from typing import Any, Literal
 
 from pipeline.config import schema
-from pipeline.config.loading import toml_value
+from pipeline.config.choices import did_you_mean, nearest
+from pipeline.config.loading import config_keys, toml_value, unknown_key
 from pipeline.config.schema import Config
 from pipeline.errors import UserError
 
@@ -98,27 +100,50 @@ def config_sections(config: Config, only: str | None = None) -> list[SectionDoc]
 
 
 def _one_key(config: Config, key: str, sections: dict[str, Any]) -> SectionDoc:
-    """The section of `key` holding that key alone; UserError naming a wrong section or key."""
+    """The section of `key` holding that key alone; UserError naming a wrong section or key,
+    with the nearest names."""
     section = key.split(".")[0] if "." in key else ""
-    if (section and section not in sections) or (not section and not hasattr(config, key)):
-        raise UserError(f"unknown config section '{section or key}' (choose from {', '.join(sections)})")
+    if not section and not hasattr(config, key):
+        keys = [k for k in config_keys(config) if k.endswith(f".{key}")]
+        hint = did_you_mean(nearest(key, sections) or keys[:2])
+        raise UserError(
+            f"unknown config section '{key}'" + (f": {hint}" if hint else "") + " (every one: gsplatam config)"
+        )
+    if section and section not in sections:
+        raise unknown_key(key)
     (found,) = [s for s in config_sections(config, section or None) if s.name == section]
-    keys = [k for k in found.keys if k.key == key]
-    if not keys:
-        raise UserError(f"unknown config key '{key}' (the section's keys: gsplatam config {section})")
-    return SectionDoc(found.name, found.summary, keys)
+    docs = [k for k in found.keys if k.key == key]
+    if not docs:
+        raise unknown_key(key)
+    return SectionDoc(found.name, found.summary, docs)
+
+
+LINE_WIDTH = 100  # characters: longer lines are wrapped, their continuation indented
+
+
+def wrapped(line: str, indent: int, width: int = LINE_WIDTH) -> str:
+    """`line` folded at spaces to `width` characters, the continuations indented by `indent`
+    (a word longer than the line stays whole)."""
+    return textwrap.fill(
+        line, width=width, subsequent_indent=" " * indent, break_long_words=False, break_on_hyphens=False
+    )
 
 
 def format_sections(sections: list[SectionDoc]) -> str:
-    """A plain-text table: one line per key (key, type, default, meaning), a heading per section."""
+    """A plain-text table: one entry per key (key, type, default, meaning: lines of at most
+    LINE_WIDTH characters, a meaning wrapped under itself), a heading per section."""
     rows = [k for s in sections for k in s.keys]
     key_w = max(len(k.key) for k in rows)
     type_w = min(max(len(k.type) for k in rows), 24)
     default_w = min(max(len(k.default) for k in rows), 16)
     lines = []
     for section in sections:
-        lines.append(f"[{section.name}]  {section.summary}" if section.name else section.summary)
+        lines.append(wrapped(f"[{section.name}]  {section.summary}" if section.name else section.summary, 4))
         for k in section.keys:
-            lines.append(f"  {k.key:<{key_w}}  {k.type:<{type_w}}  {k.default:<{default_w}}  {k.meaning}".rstrip())
+            head = f"  {k.key:<{key_w}}  {k.type:<{type_w}}  {k.default:<{default_w}}  "
+            if len(head) > LINE_WIDTH // 2:  # a long key, type or default: the meaning on the next line
+                lines += [head.rstrip(), wrapped(" " * (key_w + 4) + k.meaning, key_w + 4)]
+            else:
+                lines.append(wrapped(head + k.meaning, len(head)).rstrip())
         lines.append("")
     return "\n".join(lines)

@@ -6,12 +6,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from pipeline.errors import UserError
+
 DatasetFormat = Literal["auto", "replica", "tum", "rosbag"]
 GaussianKind = Literal["3d", "2d"]
 RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
+MappingRate = Literal["frame", "keyframe"]
 TrackingMethod = Literal["adam", "align"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
@@ -28,6 +31,7 @@ class DatasetConfig:
     """The input sequence on disk and how much of it is used."""
 
     path: str = ""  # dataset folder (Replica or TUM layout) or bag (ROS 1 .bag, RealSense .bag, ROS 2 folder, .db3, .mcap); empty: generate the embedded synthetic room
+    path_as_given: str = ""  # the folder as the command line named it (a run records it; path is made absolute)
     format: DatasetFormat = "auto"  # layout of the folder; auto: detected from its files (a bag: rosbag)
     width: int = 0  # working width in pixels; 0: native size, else resized (colour linear, depth nearest)
     height: int = 0  # working height in pixels (set with width)
@@ -35,6 +39,8 @@ class DatasetConfig:
     end: int = -1  # frame after the last one used (exclusive); -1: to the end
     stride: int = 1  # use every Nth frame
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels at the stored size; empty: from the layout
+    depth_scale: float = 0.0  # depth image units per metre; 0: by layout (TUM 5000, Replica 6553.5); millimetres: 1000
+    depth_range_m: tuple[float, ...] = (0.1, 20.0)  # first frames' median depth outside: the run stops; (): no check
     color_topic: str = ""  # a bag's colour images (sensor_msgs/Image or CompressedImage); empty: the only one
     depth_topic: str = ""  # a bag's depth images (16UC1 millimetres, 32FC1 metres); empty: the only one
     camera_info_topic: str = ""  # a bag's sensor_msgs/CameraInfo; empty: the colour topic's, or the only one
@@ -118,7 +124,8 @@ class MappingConfig:
     max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
     views_per_step: int = 1  # keyframe views rendered together per optimiser step (the same renders in all)
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
-    refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes
+    rate: MappingRate = "keyframe"  # process schedule: keyframe: only keyframes are densified and mapped (chosen on the tracking side by what they add), the rest tracked only; frame: every frame tracked well (sequential always maps every frame)
+    refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes (in turn the newest one's covisible window and the next of all of them)
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
@@ -140,8 +147,11 @@ class DensifyConfig:
 class KeyframeConfig:
     """Which frames are kept for mapping."""
 
-    every: int = 5  # every Nth frame becomes a keyframe (the last frame too)
+    every: int = 5  # every Nth frame becomes a keyframe (the last frame too); mapping.rate=keyframe: the longest gap between keyframes
     overlap_samples: int = 1600  # pixels sampled to measure a keyframe's overlap with the current frame
+    min_overlap: float = 0.9  # mapping.rate=keyframe: a frame with less than this fraction of its valid pixels inside the last keyframe's view is a keyframe
+    max_translation: float = 0.08  # mapping.rate=keyframe: so is one whose camera moved more than this x its median depth from the last keyframe (MonoGS's kf_translation)
+    min_coverage: float = 0.5  # mapping.rate=keyframe: so is one the map covers less of (tracking's coverage, against a map holding every keyframe so far)
     max_kept: int = 0  # keyframes held at most (0: all); past it the most redundant viewpoint goes
 
 
@@ -210,8 +220,12 @@ class SlamConfig:
     """How tracking and mapping share the frames."""
 
     schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own
-    max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (live: no bound)
+    max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (mapping.rate=keyframe: keyframes; live: no bound)
     backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
+
+    def __post_init__(self) -> None:
+        if not self.backend_timeout_s > 0:  # 0 would take a healthy mapping process for a hung one at once
+            raise UserError(f"slam.backend_timeout_s must be > 0 (seconds), not {self.backend_timeout_s}")
 
 
 @dataclass(frozen=True)
@@ -227,6 +241,7 @@ class RunConfig:
     queue_size: int = 4  # frames each pipeline queue holds
     seed: int = 0  # seeds mapping's keyframe picks and pixel sampling
     save_every_s: float = 60.0  # map, trajectory and checkpoint written this often while running (and at the end)
+    renders: int = 20  # evaluated frames whose render is saved beside the input in renders/ (evenly spread; 0: none)
     kernel_sample: Switch = "auto"  # the GPU's kernel busy fraction over frames 10-60 (CUPTI; auto: on CUDA)
 
 
@@ -301,7 +316,11 @@ PRESET_TRACKING: dict[str, TrackingMethod] = {"base": "adam", "small": "align", 
 
 # Values that SplaTAM tunes per dataset family.
 DATASET_DEFAULTS: dict[str, dict[str, float]] = {
-    "replica": {"tracking.lr_rotation": 0.0004, "mapping.scene_radius_divisor": 3.0},
-    "tum": {"tracking.lr_rotation": 0.002, "mapping.scene_radius_divisor": 2.0},
+    "replica": {"tracking.lr_rotation": 0.0004, "mapping.scene_radius_divisor": 3.0, "dataset.depth_scale": 6553.5},
+    "tum": {"tracking.lr_rotation": 0.002, "mapping.scene_radius_divisor": 2.0, "dataset.depth_scale": 5000.0},
 }
-DATASET_DEFAULTS["rosbag"] = DATASET_DEFAULTS["tum"]  # a bag is a real depth sensor's, as TUM's
+# a bag is a real depth sensor's, as TUM's; its depth comes in its messages' own units
+DATASET_DEFAULTS["rosbag"] = {k: v for k, v in DATASET_DEFAULTS["tum"].items() if k != "dataset.depth_scale"}
+
+# The preset of a run on the CPU (and of live input) where none is named.
+DEFAULT_PRESET_CPU = "tiny"

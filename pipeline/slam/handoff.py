@@ -27,7 +27,8 @@ class FrameResult:
     c2w_gt: torch.Tensor | None = None  # [4, 4] the frame's reference camera-to-world, on the host
     warning: str = ""  # why tracking looked weak though its pose is used and mapped (low map coverage)
     relocalised_from: int | None = None  # after a loss: the keyframe (frame index) whose pose tracking held from
-    mapped: bool = True  # False: tracked only (lost, or skipped by a live session's mapping)
+    mapped: bool = True  # False: tracked only (lost, skipped by a live session's mapping, or not a keyframe)
+    between_keyframes: bool = False  # mapping.rate=keyframe: not a keyframe, tracked only by design
     map_version: int = 0  # the map version published after this frame (the latest one when not mapped)
     received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival
     age_at_start_s: float | None = None  # live: seconds from the frame's arrival to the start of its tracking
@@ -42,3 +43,4 @@ class TrackedFrame:
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the device
     position: int  # the frame's position among the run's poses
     ready: torch.cuda.Event | None = None  # recorded after tracking on its stream; None on the CPU
+    keyframe: bool = False  # tracking chose it as a keyframe (mapping.rate=keyframe); else mapping's cadence says

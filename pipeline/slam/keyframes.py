@@ -1,11 +1,16 @@
-"""Keyframes and their selection by overlap with the current frame."""
+"""Keyframes: what they hold, the window mapped with a frame (by overlap with it), the one
+dropped from a full store, and (`mapping.rate=keyframe`) which tracked frames become keyframes
+by what they add (`KeyframeChooser`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
+from pipeline.config import KeyframeConfig
+from pipeline.frame import DeviceFrame
 from pipeline.geometry import backproject, invert_pose, pixel_grid, project
 
 
@@ -65,12 +70,19 @@ def overlap_fractions(
 ) -> torch.Tensor:
     """Fraction of the sampled pixels (flat indices into depth [H, W]) that land inside each
     keyframe's image with positive depth: [K] for keyframe poses [K, 4, 4] (camera-to-world)."""
+    return _landing_inside(depth, intrinsics, c2w, keyframe_c2w, pixels).float().mean(-1)
+
+
+def _landing_inside(
+    depth: torch.Tensor, intrinsics: torch.Tensor, c2w: torch.Tensor, keyframe_c2w: torch.Tensor, pixels: torch.Tensor
+) -> torch.Tensor:
+    """[K, P] whether each of the pixels (flat indices into depth [H, W]), back-projected from
+    the camera at `c2w`, lands inside each keyframe's image (poses [K, 4, 4]) with positive depth."""
     height, width = depth.shape
     u, v = pixel_grid(height, width, depth.device)
     points = backproject(u.reshape(-1)[pixels], v.reshape(-1)[pixels], depth.reshape(-1)[pixels], intrinsics, c2w)
     uv, z = project(points[None], invert_pose(keyframe_c2w), intrinsics)
-    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
-    return inside.float().mean(-1)
+    return (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
 
 
 def select_window(
@@ -126,3 +138,81 @@ def relocalisation_picks(count: int, candidates: int, attempt: int) -> list[int]
         return []
     stride = -(-count // candidates)
     return list(range(attempt % stride, count, stride))
+
+
+@dataclass(frozen=True)
+class Novelty:
+    """What a tracked frame adds beside the last keyframe."""
+
+    overlap: float  # fraction of its valid-depth pixels (a grid of them) inside the last keyframe's view
+    moved: float  # camera centres' distance over the frame's median valid depth (no valid depth: 0)
+
+
+def grid_pixels(height: int, width: int, samples: int, device: torch.device) -> torch.Tensor:
+    """Flat indices [P] of a regular grid of about `samples` pixels over an [H, W] image (every
+    pixel when it has fewer): no random draw and no host read, unlike `sample_valid_pixels`."""
+    stride = max(1, round(math.sqrt(height * width / samples)))
+    rows = torch.arange(stride // 2, height, stride, device=device)
+    cols = torch.arange(stride // 2, width, stride, device=device)
+    return (rows[:, None] * width + cols[None, :]).reshape(-1)
+
+
+def novelty(
+    depth: torch.Tensor, intrinsics: torch.Tensor, c2w: torch.Tensor, keyframe_c2w: torch.Tensor, samples: int
+) -> Novelty:
+    """How much a frame (depth [H, W] metres, camera-to-world `c2w` [4, 4]) adds beside a keyframe
+    at `keyframe_c2w` [4, 4], from a grid of about `samples` pixels (one host read). A frame
+    without valid depth adds nothing: overlap 1, moved 0."""
+    height, width = depth.shape
+    pixels = grid_pixels(height, width, samples, depth.device)
+    sampled = depth.reshape(-1)[pixels]
+    valid = sampled > 0
+    inside = _landing_inside(depth, intrinsics, c2w, keyframe_c2w[None], pixels)[0] & valid
+    count = valid.sum()
+    overlap = torch.where(count > 0, inside.sum() / count.clamp(min=1), torch.ones((), device=depth.device))
+    median = torch.nanmedian(torch.where(valid, sampled, torch.full_like(sampled, math.nan)))
+    distance = torch.linalg.norm(c2w[:3, 3] - keyframe_c2w[:3, 3].to(c2w))
+    moved = torch.where(count > 0, distance / median.nan_to_num(1.0).clamp(min=1e-6), torch.zeros_like(distance))
+    overlap_value, moved_value = torch.stack([overlap.float(), moved.float()]).tolist()
+    return Novelty(overlap_value, moved_value)
+
+
+class KeyframeChooser:
+    """Which tracked frames become keyframes at `mapping.rate=keyframe`, on the tracking side and
+    by what each adds, as MonoGS chooses them: a frame is a keyframe when the map covers little
+    of it (`min_coverage`), when little of it lies in the last keyframe's view (`min_overlap`) or
+    its camera has moved far from it (`max_translation` x its median depth); and at the latest
+    `every` frames after the last keyframe, the first and a dataset's last frame always. The
+    caller never offers a lost frame (it is never mapped), and says with `kept` which keyframe
+    mapping took."""
+
+    def __init__(self, config: KeyframeConfig) -> None:
+        self.config = config
+        self.last: KeyframePose | None = None  # the last keyframe kept, its pose as tracked
+
+    def reason(
+        self, frame: DeviceFrame, c2w: torch.Tensor, position: int, coverage: float | None, is_last: bool
+    ) -> str:
+        """Why the frame at `position` among the run's poses, tracked at camera-to-world `c2w`
+        [4, 4], is a keyframe; empty when it is not. `coverage`: the fraction of its valid pixels
+        the map covers, from a map version holding every keyframe kept so far (None: a version
+        without the newest, which cannot say what the frame adds)."""
+        config, last = self.config, self.last
+        if last is None:
+            return "the first frame"
+        if is_last:
+            return "the last frame"
+        if position - last.position >= config.every:
+            return f"{position - last.position} frames after the last keyframe (keyframes.every)"
+        if coverage is not None and coverage < config.min_coverage:
+            return f"the map covers {coverage:.0%} of it"
+        added = novelty(frame.depth, frame.intrinsics, c2w, last.c2w, config.overlap_samples)
+        if added.overlap < config.min_overlap:
+            return f"{added.overlap:.0%} of it in the last keyframe's view"
+        if added.moved > config.max_translation:
+            return f"moved {added.moved:.2f} x its median depth"
+        return ""
+
+    def kept(self, keyframe: KeyframePose) -> None:
+        """Mapping took this keyframe: the next frames are measured against it."""
+        self.last = keyframe

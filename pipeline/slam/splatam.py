@@ -5,6 +5,7 @@ the last frame mapping has passed, with the poses and tracking state up to that 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -63,10 +64,22 @@ class SplaTAM:
         self._passed_mark = self.frontend.mark()
         return mapped.filled(result)
 
-    def finish(self, final_renders: int) -> int:
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """After the last frame: `final_renders` view renders of refinement over every keyframe
-        (`mapping.final_iters`), published. -> the renders done."""
-        return self.backend.refine(final_renders, views=len(self.backend.keyframes))
+        (`mapping.final_iters`), ending at its next step once `should_stop()`; published. ->
+        the renders done."""
+        return self.backend.refine(final_renders, should_stop, len(self.backend.keyframes))
+
+    @property
+    def failure(self) -> str:
+        """Mapping runs in the caller's thread here: a failure is raised where it happens."""
+        return ""
+
+    def unmapped(self) -> list[int]:
+        return []
+
+    def stop_waiting(self) -> None:
+        """Nothing is waited for here: every state is complete."""
 
     def sample_kernels(self, step: str) -> float:
         """No other process launches this SLAM's kernels (`KernelSampler`)."""

@@ -3,6 +3,7 @@ what the SLAM stage and the commands use of a SLAM schedule."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import torch
@@ -76,7 +77,21 @@ class SteppedSlam(PublishedSlam, Protocol):
 
     def restore(self, saved: Checkpoint) -> None: ...
 
-    def finish(self, final_renders: int) -> int: ...
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int: ...
+
+    @property
+    def failure(self) -> str:
+        """Why a part of SLAM running elsewhere failed; empty while it works."""
+        ...
+
+    def unmapped(self) -> list[int]:
+        """The frames tracked and handed to mapping that the map lacks (mapping failed first)."""
+        ...
+
+    def stop_waiting(self) -> None:
+        """Wait no more for a part of SLAM running elsewhere (a second signal); safe in a
+        signal handler."""
+        ...
 
     def mapping_summary(self) -> dict[str, Any] | None: ...
 

@@ -27,7 +27,9 @@ class FrameLog:
         self.lost_frames = 0
         self.weak_frames = 0  # tracked with a warning (low map coverage, or relocalised), still mapped
         self.relocalised_frames = 0  # tracked after a loss from a keyframe's pose
-        self.unmapped_frames = 0  # tracked but not mapped: lost, or skipped by a live session's mapping
+        self.unmapped_frames = (
+            0  # tracked but not mapped: lost, or skipped by a live session's mapping (not by design between keyframes)
+        )
 
     def add(self, result: FrameResult, arrived_at: float) -> None:
         previous = self.results[-1] if self.results else None
@@ -41,7 +43,7 @@ class FrameLog:
             if previous is None or not previous.warning:
                 log.info("frame %d: tracking weak: %s", result.index, result.warning)
         self.relocalised_frames += result.relocalised_from is not None
-        self.unmapped_frames += not result.mapped
+        self.unmapped_frames += not result.mapped and not result.between_keyframes
         if log.isEnabledFor(logging.DEBUG):  # per frame: the line is built only behind -v
             log.debug("frame %d: %s; tracker: %s", result.index, _stage_times(result), _verdict(result))
 
@@ -68,6 +70,8 @@ def _verdict(result: FrameResult) -> str:
     if result.relocalised_from is not None:
         verdict += f", relocalised from keyframe {result.relocalised_from}"
     mapped = f"mapped into version {result.map_version}" if result.mapped else "not mapped"
+    if result.between_keyframes:
+        mapped = "not a keyframe"
     return f"{verdict}, loss {result.tracking_loss:.4g}, coverage {result.coverage:.0%}; {mapped}, {result.gaussians:,} Gaussians"
 
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from pipeline.errors import StageFailure
 from pipeline.stages.gpu_spans import GpuSpans
-from pipeline.stages.queues import END, EndOfStream, StageQueue
+from pipeline.stages.queues import END, EndOfStream, StageQueue, StreamFailed
 from pipeline.stages.stage import StageStats, frame_index
 
 
@@ -65,8 +65,9 @@ class DedicatedThread:
         self._halted = threading.Event()
 
     async def run(self) -> EndOfStream:
-        """-> the end marker passed on (END, or the StreamFailed of a stage before this one); a
-        failure of the stage's function itself is raised."""
+        """-> the end marker passed on (END, or the StreamFailed of a stage before this one or of
+        the stage's function itself). The results before a failure are passed on first, so the
+        sink takes every item finished before it (frames.csv holds every frame a save holds)."""
         loop = asyncio.get_running_loop()
         finished: asyncio.Queue[Any] = asyncio.Queue()
         slots = asyncio.Semaphore(1 if self.stage.pass_over else 2)
@@ -81,7 +82,8 @@ class DedicatedThread:
         try:
             while not isinstance(results := await finished.get(), EndOfStream):
                 if isinstance(results, StageFailure):
-                    raise results
+                    results = StreamFailed(results)
+                    break
                 for result in results:
                     if result is not None:  # a passed-over item that is dropped
                         await self.outbox.put(result)

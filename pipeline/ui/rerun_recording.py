@@ -30,6 +30,7 @@ import rerun as rr
 import torch
 
 from pipeline.errors import OutputError, UserError
+from pipeline.io.files.atomic import temporary_name
 from pipeline.render import Gaussians
 from pipeline.ui.thumbnail import as_u8
 
@@ -154,7 +155,7 @@ class RerunRecording:
 
 def _partial(save: Path) -> Path:
     """Where rerun writes the recording until it is complete (rerun writes the file itself)."""
-    return save.with_name(f".{save.name}.tmp")
+    return temporary_name(save, str(os.getpid()))
 
 
 def _spawn_viewer(rec: rr.RecordingStream) -> None:

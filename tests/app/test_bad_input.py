@@ -110,11 +110,11 @@ def _ply(path: Path) -> Path:
 @pytest.mark.parametrize(
     "damage, message",
     [
-        (lambda raw: raw[:-100], "is truncated: its header announces 20 Gaussians"),
-        (lambda raw: raw.replace(b"element vertex 20", b"element vertex many"), "malformed header line"),
-        (lambda raw: raw.replace(b"element vertex 20\n", b""), "no 'element vertex' line"),
-        (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "malformed header"),
-        (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "only binary little-endian"),
+        (lambda raw: raw[:-100], "element 'vertex': row 18: early end-of-file"),
+        (lambda raw: raw.replace(b"element vertex 20", b"element vertex many"), "expected integer count"),
+        (lambda raw: raw.replace(b"element vertex 20\n", b""), "is not a PLY file that can be read"),
+        (lambda raw: raw.replace(b"property float y\n", b"property float y\nproperty float x\n"), "same name"),
+        (lambda raw: b"ply\nformat ascii 1.0\nend_header\n", "no 'element vertex' line"),
         (lambda raw: raw[:-4] + np.float32(np.nan).tobytes(), "holds NaN or infinite values"),
     ],
 )
@@ -196,3 +196,102 @@ def test_an_unreadable_checkpoint_is_named_as_unreadable(tmp_path: Path) -> None
     done = _without_root_override(["export", str(run), "--to", "splat"])
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines()[-1] == f"gsplatam: error: cannot read {checkpoint}: permission denied"
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--fps", "0"], "--fps must be > 0"),
+        (["--fps", "nan"], "--fps must be > 0"),
+        (["--speed", "0", "--loops", "1"], "--speed must be > 0"),
+        (["--width", "100000", "--height", "100000"], "--width must be 0 (by device) to 4096 pixels"),
+        (["--loops", "100000"], "--loops must be 0 to 1000, not 100000"),
+        (["--loops", "200", "--speed", "0.05"], "--loops 200 at --speed 0.05 and --fps 30 makes"),
+        (["--holes", "2"], "--holes must be >= 0 and < 1"),
+        (["--depth-noise", "-1"], "--depth-noise must be 0 to 1"),
+        (["--loops", "-1"], "--loops must be 0 to 1000, not -1"),
+        (["--seed", "-1"], "--seed must be >= 0"),
+        (["--time-jitter", "0.5"], "--time-jitter must be >= 0 and < 0.08 s"),
+        (["--layout", "tun"], "did you mean 'tum'?"),
+    ],
+)
+def test_every_synth_option_is_checked_before_any_work(
+    options: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if options[0] == "--layout":  # argparse's own check: it exits
+        with pytest.raises(SystemExit) as exit_info:
+            main(["synth", str(tmp_path / "seq"), *options])
+        assert exit_info.value.code == 2
+    else:
+        assert main(["synth", str(tmp_path / "seq"), *options, "--quiet"]) == 2
+    assert message in _last_error(capsys)
+    assert not (tmp_path / "seq").exists()
+
+
+def test_bench_out_naming_a_file_is_refused_before_any_cell(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    existing = tmp_path / "table.md"
+    existing.write_text("mine\n")
+    runs = tmp_path / "runs"
+    assert main(["bench", "--out", str(existing), "--runs", str(runs), "--quiet"]) == 2
+    assert f"--out {existing} is a file: name a folder" in _last_error(capsys)
+    (tmp_path / "res" / "bench.json").mkdir(parents=True)
+    assert main(["bench", "--out", str(tmp_path / "res"), "--runs", str(runs), "--quiet"]) == 2
+    assert f"--out: {tmp_path / 'res' / 'bench.json'} is a folder" in _last_error(capsys)
+    assert existing.read_text() == "mine\n" and not runs.exists()  # nothing ran
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--repeats", "0"], "--repeats must be at least 1, not 0"),
+        (["--gpus-per-cell", "nan"], "--gpus-per-cell must be > 0, not nan"),
+        (["--stem", "a/b"], "--stem must be a file name"),
+        (["--variants", "defualt"], "unknown variant (--variants) 'defualt': did you mean 'default'?"),
+        (["--presets", "tiny,smal"], "unknown preset 'smal': did you mean 'small'?"),
+        (["--set", "mapping.final_iters=-5"], "mapping.final_iters must be >= 0"),
+    ],
+)
+def test_every_bench_option_is_checked_before_any_cell(
+    options: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    runs = tmp_path / "runs"
+    assert main(["bench", "--out", str(tmp_path / "res"), "--runs", str(runs), *options, "--quiet"]) == 2
+    assert message in _last_error(capsys)
+    assert not runs.exists() and not (tmp_path / "res").exists()
+
+
+def test_a_rerun_recording_naming_a_folder_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    argv = ["run", "--output", str(out), "--viewer", "rerun", "--quiet"]
+    assert main([*argv, "--set", f"viewer.rerun_save={tmp_path}"]) == 2
+    assert f"viewer.rerun_save: {tmp_path} is a folder" in _last_error(capsys)
+    assert main([*argv, "--set", f"viewer.rerun_save={tmp_path / 'no' / 'x.rrd'}"]) == 2
+    assert f"viewer.rerun_save: the folder {tmp_path / 'no'} does not exist" in _last_error(capsys)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["run", "--set", "tracking.iterz=3"], "did you mean 'tracking.iters'?"),
+        (["config", "trackin"], "did you mean 'tracking'?"),
+        (["run", "--preset", "tinny"], "did you mean 'tiny'?"),
+        (["bench", "--set", "mapping.final_iters=-5"], "mapping.final_iters must be >= 0"),
+        (["serve", "--nerfcapture", "--set", "live.stall_timeout_s=0"], "live timeouts must be > 0"),
+    ],
+)
+def test_a_config_mistake_is_answered_before_torch_is_imported(argv: list[str], message: str) -> None:
+    """So that it is answered at once (the imports cost seconds): the command runs in a process
+    that says afterwards whether torch was loaded."""
+    script = (
+        "import sys\nfrom pipeline.app.cli import main\ncode = main(sys.argv[1:])\n"
+        "print('torch loaded' if 'torch' in sys.modules else 'torch not loaded')\nsys.exit(code)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, *argv], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2 and message in done.stderr.strip().splitlines()[-1], done.stderr
+    assert done.stdout.strip() == "torch not loaded"

@@ -1,6 +1,5 @@
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -8,13 +7,16 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
+import cv2
 import pytest
 from conftest import ROOT
 
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
+from pipeline.extras import unavailable_extra
 from pipeline.io.files.trajectory import read_tum_trajectory
 from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.sources.datasets.loader import open_dataset
@@ -102,10 +104,14 @@ def run_folder(tmp_path: Path, name: str) -> Path:
 
 
 @pytest.mark.slow
-def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_path: Path, capsys) -> None:
-    """The run command end to end: the pipelined runtime, metrics, outputs; then --resume."""
-    base = ["run", str(replica_seq), "--preset", "tiny", "--output", str(tmp_path / "out"), "--name", "r", "--quiet"]
-    assert main(base + ["--set", "dataset.end=4"]) == 0
+def test_run_then_resume_on_a_small_synthetic_sequence(
+    replica_seq: Path, tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run command end to end: the pipelined runtime, metrics, outputs, pictures; then
+    --resume from another directory (the dataset was named by a relative path)."""
+    monkeypatch.chdir(replica_seq.parent)
+    base = ["run", replica_seq.name, "--preset", "tiny", "--output", str(tmp_path / "out"), "--name", "r", "--quiet"]
+    assert main(base + ["--set", "dataset.end=4", "--set", "run.eval_every=2"]) == 0
     printed = capsys.readouterr().out
     assert "ATE RMSE / mean" in printed and "outputs:" in printed
     assert "  intrinsics.json" in printed and "evo_ape tum" in printed
@@ -122,7 +128,16 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     ):
         assert (folder / name).exists(), name
     assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 4
+    recorded = tomllib.loads((folder / "config.toml").read_text())["dataset"]
+    assert recorded["path"] == str(replica_seq) and recorded["path_as_given"] == replica_seq.name
+    renders = sorted(p.name for p in (folder / "renders").iterdir())
+    assert renders == ["frame000000.png", "frame000002.png"]  # the evaluated frames, input beside render
+    assert cv2.imread(str(folder / "renders" / renders[0])).shape == (2 * 48, 2 * 64, 3)
+    assert cv2.imread(str(folder / "trajectory.png")) is not None
+    render = json.loads((folder / "metrics.json").read_text())["render"]
+    assert render["depth_rmse_cm"] >= render["depth_l1_cm"] > 0  # a root mean square is at least the mean
 
+    monkeypatch.chdir(tmp_path)  # elsewhere: the run folder names its dataset by its absolute path
     assert main(["run", "--resume", str(folder), "--set", "dataset.end=-1", "--quiet"]) == 0
     metrics = json.loads((folder / "metrics.json").read_text())
     assert metrics["frames"] == 6 and metrics["frames_this_run"] == 2
@@ -132,8 +147,8 @@ def test_run_then_resume_on_a_small_synthetic_sequence(replica_seq: Path, tmp_pa
     camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
     assert (camera["width"], camera["height"]) == (64, 48)
     for fmt, exporter in EXPORTERS.items():
-        if exporter.NEEDS is not None and importlib.util.find_spec(exporter.NEEDS) is None:
-            continue  # its extra is absent (tests/io/outputs/test_exports.py says so)
+        if exporter.NEEDS is not None and unavailable_extra(exporter.NEEDS):
+            continue  # its extra is absent or cannot load (tests/io/outputs/test_exports.py says why)
         assert main(["export", str(folder), "--to", fmt]) == 0
         assert (folder / exporter.DEFAULT_NAME).exists(), fmt
 
@@ -300,3 +315,18 @@ def test_verbose_logs_each_frames_stage_times_tracker_verdict_and_the_saves(
     assert [line.split(":")[0] for line in frames] == ["frame 0", "frame 1", "frame 2"]
     assert all("tracking " in line and " ms" in line and "tracker: ok" in line for line in frames[1:]), frames
     assert any(line.startswith("saving trajectory, map and checkpoint of 3 frames") for line in debug)
+
+
+def test_libraries_info_lines_are_not_shown(caplog: pytest.LogCaptureFixture) -> None:
+    """NumExpr (imported by pandas, which Ray imports) says how many threads it uses at INFO;
+    matplotlib says it built its font cache: neither is the user's business."""
+    import logging
+
+    from pipeline.app.logs import configure_logging
+
+    configure_logging()
+    with caplog.at_level("INFO"):
+        logging.getLogger("numexpr.utils").info("NumExpr defaulting to 2 threads.")
+        logging.getLogger("matplotlib.font_manager").info("generated new fontManager")
+        logging.getLogger("gsplatam").info("ours")
+    assert [r.getMessage() for r in caplog.records] == ["ours"]

@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
+import sys
+import sysconfig
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import write_gt_run
+from conftest import ROOT, write_gt_run
 
 from pipeline.app import report
 from pipeline.extras import CHECKOUT, install_command, pip_command
@@ -41,14 +45,18 @@ def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> N
     assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(EXPORTERS)
 
 
-def test_what_is_not_installed_comes_with_its_install_command(run_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_what_is_not_installed_comes_with_its_install_command(
+    run_dir: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
     monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.setattr(sysconfig, "get_path", lambda name: str(tmp_path))  # an environment without evo
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name in ("open3d", "viser") else real(name))
     lines = _next(run_dir)
     (evo,) = [line for line in lines if "evo_ape" in line]
     (mesh,) = [line for line in lines if line.split("   #")[0].endswith("--to mesh")]
-    assert evo.startswith(f"{pip_command()} install evo && evo_ape tum ")
+    # evo_ape by the path pip installs it at in this environment: no PATH (no activated venv) needed
+    assert evo.startswith(f"{pip_command()} install evo && {shlex.quote(str(tmp_path / 'evo_ape'))} tum ")
     assert mesh.startswith(f"{install_command('mesh')} && ") and " -m pipeline export " in mesh
     assert lines[0].startswith(f"{install_command('viewer')} && ")
     assert "-e" in shlex.split(install_command("mesh")) and f"{CHECKOUT}[mesh]" in shlex.split(install_command("mesh"))
@@ -93,3 +101,50 @@ def test_the_warm_up_is_timed_from_the_pipelines_start() -> None:
     timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0))  # type: ignore[arg-type]
     assert WARMUP_FRAMES == 2 and timing.first_result_s == 2.0 and timing.warmup_s == 3.0
     assert timing.fps_wall == 1.25 and timing.fps_steady == pytest.approx(2 / 0.2)
+
+
+BARE_PATH = "/usr/bin:/bin"  # a shell's PATH without this Python's environment (no activated venv)
+
+
+def _program(line: str) -> str:
+    """The program a printed command runs (after an install step), as the shell finds it."""
+    command = line.split("   #")[0].split(" && ")[-1]
+    return shlex.split(command)[0]
+
+
+@pytest.mark.slow
+def test_every_printed_command_runs_as_pasted_into_a_shell_without_the_environment_activated(run_dir: Path) -> None:
+    """The lines a run prints at its end ('next:', and the resume line of a stopped run), as a
+    run in a shell without its virtual environment on the PATH builds them, each run in such a
+    shell: none is 'command not found'."""
+    env = {**{k: v for k, v in os.environ.items() if k != "VIRTUAL_ENV"}, "PATH": BARE_PATH, "PYTHONPATH": str(ROOT)}
+    script = (
+        "import sys\nfrom pathlib import Path\nfrom pipeline.app.report import next_steps, resume_command\n"
+        "from pipeline.io.outputs.run_folder import RunFolder\nfolder = RunFolder(Path(sys.argv[1]))\n"
+        "print('\\n'.join(line.strip() for line in next_steps(folder)))\nprint(resume_command(folder.path))\n"
+    )
+    built = subprocess.run([sys.executable, "-c", script, str(run_dir)], env=env, capture_output=True, text=True)
+    assert built.returncode == 0, built.stderr
+    lines = built.stdout.strip().splitlines()
+    for line in lines:  # every program is found in that shell: by its path, or on the bare PATH
+        program = _program(line)
+        assert os.path.isabs(program) or shutil.which(program, path=BARE_PATH), line
+    view, evo = lines[0], next(line for line in lines if "evo_ape" in line)
+    splat = next(line for line in lines if line.endswith("--to splat"))
+    for line, says in ((evo, "rmse"), (splat, "wrote ")):
+        done = subprocess.run(["bash", "-c", line], env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0 and says in done.stdout, (line, done.stderr)
+    resumed = subprocess.run(["bash", "-c", lines[-1]], env=env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode in (0, 2) and "gsplatam: " in resumed.stderr, resumed.stderr  # gsplatam ran
+    with subprocess.Popen(
+        ["bash", "-c", f"exec {view}"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    ) as shown:
+        assert shown.stdout is not None
+        printed = []
+        for line in iter(shown.stdout.readline, ""):  # viser's banner, then ours
+            printed.append(line)
+            if line.startswith("showing "):
+                break
+        shown.send_signal(signal.SIGINT)  # the way to quit it
+        assert shown.wait(timeout=60) == 0, "".join(printed)
+    assert "Gaussians at http://" in printed[-1], printed

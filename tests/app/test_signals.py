@@ -33,3 +33,15 @@ def test_outside_the_main_thread_nothing_is_installed() -> None:
     worker.start()
     worker.join(10)
     assert seen == [False]
+
+
+def test_a_second_signal_calls_on_again_and_a_third_too() -> None:
+    """The first signal is noted (the final refinement and the evaluation are cut short); each
+    later one calls on_again (SLAM then waits for nothing more and saves what is complete)."""
+    again: list[int] = []
+    with signals_noted(on_again=lambda: again.append(1)) as noted:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert noted.wait(5) and again == []
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+    assert again == [1, 1]

@@ -78,6 +78,10 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["mapping.window=1"], "mapping.window must be >= 2"),
         (["loops.enabled=true", "loops.max_candidates=0"], "loops.max_candidates must be >= 1"),
         (["tracking.method=icp"], "bad value for 'tracking.method': 'icp' (choose from adam, align)"),
+        (["tracking.method=alig"], "bad value for 'tracking.method': 'alig': did you mean 'align'? (choose from"),
+        (["tracking.iterz=3"], "unknown config key 'tracking.iterz': did you mean 'tracking.iters'"),
+        (["trackin.iters=3"], "unknown config key 'trackin.iters': did you mean 'tracking.iters'"),
+        (["tracking.final_iters=3"], "did you mean 'mapping.final_iters'?"),
         (["tracking.refine_iters=-1"], "tracking.refine_iters must be >= 0"),
         (["tracking.align_iters=4,0,2"], "tracking.align_iters takes 1 to 6 iteration counts"),
         (["tracking.align_iters="], "tracking.align_iters takes 1 to 6 iteration counts"),
@@ -91,13 +95,29 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["loss.depth_weight=-1"], "loss weights must be >= 0"),
         (["dataset.width=-64", "dataset.height=-48"], "dataset.width and dataset.height must be >= 0"),
         (["live.width=-1", "live.height=-1"], "live.width and live.height must be >= 0"),
-        (["synthetic.width=-8"], "synthetic sizes must be >= 0"),
+        (["synthetic.width=-8"], "synthetic.width must be 0 (by device) to 4096 pixels, not -8"),
+        (["synthetic.fps=0"], "synthetic.fps must be > 0"),
+        (["synthetic.holes=2"], "synthetic.holes must be >= 0 and < 1"),
+        (["synthetic.loops=100000"], "synthetic.loops must be 0 to 1000"),
+        (["mapping.final_iters=-5"], "mapping.final_iters must be >= 0"),
+        (["slam.backend_timeout_s=0"], "slam.backend_timeout_s must be > 0"),
+        (["mapping.ssim_weight=1.5"], "mapping.ssim_weight must be in [0, 1]"),
+        (["loops.min_similarity=-2"], "loops.min_similarity must be in [-1, 1]"),
+        (["dataset.depth_scale=-1000"], "dataset.depth_scale must be > 0"),
+        (["dataset.depth_range_m=5,1"], "dataset.depth_range_m takes two depths"),
+        (["dataset.start=5", "dataset.end=5"], "dataset.end must be -1 (to the end) or > dataset.start"),
+        (["run.renders=-1"], "run.renders must be >= 0"),
+        (["run.name=../elsewhere"], "run.name (--name) must be a folder name under run.output, without '/'"),
         (["dataset.intrinsics=0,500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
         (["dataset.intrinsics=500,-500,320,240"], "dataset.intrinsics fx,fy,cx,cy must be positive"),
         (["live.status_port=65536"], "live.status_port must be a port, 1 to 65535"),
         (["live.status_port=-1"], "live.status_port must be a port"),
         (["viewer.port=0"], "viewer.port must be a port"),
         (["run.save_every_s=0"], "run.save_every_s must be > 0"),
+        (["keyframes.min_overlap=1.2"], "keyframes.min_overlap must be in [0, 1]"),
+        (["keyframes.max_translation=0"], "keyframes.max_translation must be > 0"),
+        (["keyframes.min_coverage=-0.1"], "keyframes.min_coverage must be in [0, 1]"),
+        (["mapping.rate=frames"], "bad value for 'mapping.rate': 'frames': did you mean 'frame'?"),
     ],
 )
 def test_bad_overrides_name_the_key(overrides: list[str], message: str) -> None:
@@ -115,7 +135,17 @@ def test_a_nan_in_a_config_file_names_its_key(tmp_path) -> None:
 def test_unknown_preset() -> None:
     with pytest.raises(UserError, match="unknown preset 'huge'"):
         load_config("huge")
+    with pytest.raises(UserError, match=re.escape("unknown preset 'tinny': did you mean 'tiny'? (choose from")):
+        load_config("tinny")
     assert set(PRESETS) == {"base", "small", "tiny", "tum"}
+
+
+def test_an_unknown_key_is_answered_with_the_nearest_not_with_every_key_of_its_section() -> None:
+    with pytest.raises(UserError) as caught:
+        load_config("tiny", overrides=["tracking.iterz=3"])
+    message = str(caught.value)
+    assert "did you mean 'tracking.iters'" in message and "gsplatam config tracking" in message
+    assert "silhouette_threshold" not in message  # the section's other keys are not listed
 
 
 def test_bad_config_file(tmp_path) -> None:
@@ -147,19 +177,37 @@ def _every_key(config) -> list[str]:
     return keys
 
 
+def _entries(out: str) -> dict[str, str]:
+    """key -> its entry (key, type, default, meaning; a wrapped meaning's lines joined) from the
+    config command's output."""
+    entries: dict[str, str] = {}
+    key = None
+    for line in out.splitlines():
+        if line.startswith("  ") and not line.startswith("   "):
+            key = line.split()[0]
+            entries[key] = line.strip()
+        elif line.startswith("   ") and key is not None:
+            entries[key] += " " + line.strip()
+        else:
+            key = None
+    return entries
+
+
 def test_the_config_command_lists_every_key_with_its_type_default_and_meaning(capsys) -> None:
     from pipeline.app.cli import main
-    from pipeline.config.docs import config_sections
+    from pipeline.config.docs import LINE_WIDTH, config_sections
 
     assert main(["config", "--preset", "tiny"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr().out
+    assert max(len(line) for line in out.splitlines()) <= LINE_WIDTH
+    entries = _entries(out)
     config = preset_config("tiny")
     docs = {k.key: k for section in config_sections(config) for k in section.keys}
-    assert sorted(docs) == sorted(_every_key(config))
+    assert sorted(docs) == sorted(_every_key(config)) == sorted(entries)
     for key, doc in docs.items():
         assert doc.meaning and doc.type, key  # a comment on the field's line in schema.py
-        (line,) = [line for line in lines if line.split()[:1] == [key]]
-        assert doc.type in line and doc.default in line and doc.meaning in line
+        entry = " ".join(entries[key].split())
+        assert doc.type in entry and doc.default in entry and " ".join(doc.meaning.split()) in entry
     assert docs["tracking.iters"].default == "4" and docs["run.loader"].type == "pipelined|sync"
     assert docs["mapping.prune_at"].type == "list of int"
 
@@ -172,13 +220,33 @@ def test_the_config_command_shows_one_section_and_names_a_wrong_one(capsys) -> N
     assert "live.record" in out and "tracking.iters" not in out
     assert main(["config", "trackin"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "unknown config section 'trackin' (choose from dataset," in err[0]
+    assert len(err) == 1 and "unknown config section 'trackin': did you mean 'tracking'?" in err[0]
+    assert main(["config", "final_iters"]) == 2
+    assert "did you mean 'mapping.final_iters'?" in capsys.readouterr().err
+
+
+def test_the_config_command_refuses_an_empty_preset(capsys) -> None:
+    from pipeline.app.cli import main
+
+    assert main(["config", "--preset", ""]) == 2
+    assert "unknown preset ''" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["run", "config"])
+def test_help_names_the_most_used_settings(command: str, capsys) -> None:
+    from pipeline.app.cli import main
+    from pipeline.app.commands.options import MOST_USED
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    out = capsys.readouterr().out
+    assert "most used settings" in out and all(f"  {key}=" in out for key in MOST_USED)
+    assert "dataset.depth_scale=0.0" in out and "millimetres: 1000" in " ".join(out.split())
 
 
 def _shown(capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
     """key -> its default, from the config command's output."""
-    lines = capsys.readouterr().out.splitlines()
-    return {line.split()[0]: line.split()[2] for line in lines if line.startswith("  ")}
+    return {key: entry.split()[2] for key, entry in _entries(capsys.readouterr().out).items()}
 
 
 @pytest.mark.parametrize("device, preset, method", [("cpu", "tiny", '"align"'), ("cuda", "base", '"adam"')])
@@ -210,7 +278,7 @@ def test_the_config_command_shows_one_key_and_names_a_wrong_one(capsys: pytest.C
     assert main(["config", "tracking.nope"]) == 2
     assert "unknown config key 'tracking.nope'" in capsys.readouterr().err
     assert main(["config", "trackin.method"]) == 2
-    assert "unknown config section 'trackin'" in capsys.readouterr().err
+    assert "unknown config key 'trackin.method': did you mean 'tracking.method'?" in capsys.readouterr().err
 
 
 def test_strings_that_need_toml_escapes_round_trip_through_config_toml(tmp_path: Path) -> None:

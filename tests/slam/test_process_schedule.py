@@ -17,6 +17,7 @@ import torch
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame
+from pipeline.io.files.trajectory import read_tum_trajectory
 from pipeline.io.outputs.checkpoint import read_checkpoint
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.source import DatasetSource
@@ -85,7 +86,7 @@ def test_process_schedule_tracks_every_frame_against_versions_never_written_mean
     while it is tracked against (checksums before and after each tracking step), though the
     mapping process publishes refinement passes all the while."""
     dataset = open_dataset(DatasetConfig(path=str(replica_seq)))
-    slam = _process_slam([])
+    slam = _process_slam(["mapping.rate=frame"])  # every frame mapped (keyframe rate: test_keyframe_rate.py)
     track = slam.frontend.tracker
     seen: list[tuple[int, str, str]] = []
 
@@ -195,14 +196,17 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
 
     monkeypatch.setattr(ResultSink, "consume", consume_then_fail)
     timeout = "slam.backend_timeout_s=" + ("2" if how == "hang" else "60")  # an optimiser step on the CPU: < 1 s
-    assert main(_run_argv(replica_seq, tmp_path, [timeout])) == 1
+    assert main(_run_argv(replica_seq, tmp_path, [timeout, "mapping.rate=frame"])) == 1
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert "mapping process" in error and ("ended unexpectedly" if how == "kill" else "no sign of life") in error
     folder = tmp_path / "r"
     saved, _ = read_checkpoint(folder / "checkpoint.safetensors")
     assert after <= saved.frames_done and saved.mapping.frames_seen <= saved.frames_done
     metrics = json.loads((folder / "metrics.json").read_text())
-    assert metrics["stopped"]["frames_saved"] == saved.frames_done
+    assert metrics["stopped"]["frames_saved"] == saved.frames_done == metrics["frames"]
+    rows = [int(line.split(",")[0]) for line in (folder / "frames.csv").read_text().splitlines()[1:]]
+    assert rows == list(range(saved.frames_done))  # one snapshot: frames.csv, trajectory, checkpoint
+    assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == saved.frames_done
 
     monkeypatch.setattr(ResultSink, "consume", consume)
     resume = ["run", "--resume", str(folder), "--quiet", "--device", "cpu", "--set", "mapping.final_iters=6"]
@@ -211,6 +215,8 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
     assert resumed["frames"] == 6 and resumed["stopped"] is None and resumed["ate"] is not None
     assert resumed["schedule"] == "process" and resumed["mapping_process"]["frames_mapped"] == 6 - saved.frames_done
     assert resumed["render_before_final_iters"]["psnr_db"] > 0 and resumed["render"]["keyframes"] >= 1
+    rows = [int(line.split(",")[0]) for line in (folder / "frames.csv").read_text().splitlines()[1:]]
+    assert rows == list(range(6))  # no hole left by the failure
 
 
 def test_mapping_state_travels_packed(tmp_path: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -16,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, needs_extra
 from live_helpers import wait_for
 
 from pipeline.ui.open3d_viewer import TRAJECTORY_RGB, frustum_lines
@@ -45,8 +44,7 @@ def display() -> Iterator[str]:
     """An X display of Xvfb's own (it picks a free number and says which)."""
     if XVFB is None:
         pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb; .ci/run installs it)")
-    if importlib.util.find_spec("open3d") is None:
-        pytest.skip("open3d is not installed (the mesh extra: pip install -e '.[mesh]')")
+    needs_extra("open3d")
     read, write = os.pipe()
     server = subprocess.Popen(
         [XVFB, "-displayfd", str(write), "-screen", "0", "1280x800x24", "-nolisten", "tcp"],

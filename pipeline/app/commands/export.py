@@ -6,13 +6,14 @@ import argparse
 from pathlib import Path
 
 from pipeline.extras import EXTRA_OF_MODULE
-from pipeline.io.outputs.exports import EXPORTERS
 
-HELP = f"a run folder to {', '.join(EXPORTERS)}"
+HELP = "a run folder in another format (nerfstudio, splat, PLY, a mesh, ...: export --help lists them)"
 
 
 def _formats_help() -> str:
     """Each format, what it is for and the extra it needs (% doubled: argparse formats help)."""
+    from pipeline.io.outputs.exports import EXPORTERS
+
     described = [
         f"{name}: {exporter.FOR}" + (f" [the '{EXTRA_OF_MODULE[exporter.NEEDS]}' extra]" if exporter.NEEDS else "")
         for name, exporter in EXPORTERS.items()
@@ -21,6 +22,10 @@ def _formats_help() -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The registry (its writers bring torch) is read here: the command line builds a command's
+    arguments only when that command runs (cli.build_parser)."""
+    from pipeline.io.outputs.exports import EXPORTERS
+
     parser.add_argument("run_dir", help="run folder")
     parser.add_argument("--to", required=True, choices=list(EXPORTERS), metavar="FORMAT", help=_formats_help())
     parser.add_argument("--output", metavar="PATH", help="file (folder for nerfstudio); default: in the run folder")

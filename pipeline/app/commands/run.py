@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shlex
 from pathlib import Path
 
 from pipeline.app.commands.options import (
     LIVE_SPECS,
+    SETTINGS_EPILOG,
     add_config_options,
     add_run_folder_options,
     add_viewer_options,
@@ -18,6 +18,7 @@ from pipeline.errors import UserError
 from pipeline.io.sources.cameras import camera_of
 
 HELP = "SLAM on a dataset (default: a generated synthetic room)"
+RUN_CONFIG = "config.toml"  # a run folder's config (RunFolder.config), checked before that module (torch) loads
 log = logging.getLogger("gsplatam")
 
 
@@ -33,21 +34,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loader", choices=["pipelined", "sync"], help="asyncio pipeline (default) or a plain loop")
     parser.add_argument("--profile", action="store_true", help="write a torch-profiler trace into the run folder")
     add_viewer_options(parser)
+    parser.epilog = SETTINGS_EPILOG
 
 
 def run(args: argparse.Namespace) -> int:
     if args.dataset and camera_of(args.dataset):
         return _live(args)
-    from pipeline.app.report import files_and_next_steps, format_table, gsplatam_command
+    if args.resume and args.overwrite:
+        raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
+    resume_config = Path(args.resume) / RUN_CONFIG if args.resume else None
+    if resume_config is not None and not args.config and not resume_config.exists():
+        raise UserError(f"no {RUN_CONFIG} in {args.resume}: is it a run folder?")
+    config, device = requested_config(args, live=False, config_file=resume_config)
+    from pipeline.app.report import files_and_next_steps, format_table, resume_command
+    from pipeline.app.resume import refuse_a_live_run
     from pipeline.app.run import run_slam
     from pipeline.io.outputs.run_folder import RunFolder
 
-    if args.resume and args.overwrite:
-        raise UserError("--resume continues a run, --overwrite replaces one: give one of them")
     resume = RunFolder(Path(args.resume)) if args.resume else None
-    if resume is not None and not args.config and not resume.config.exists():
-        raise UserError(f"no {resume.config.name} in {args.resume}: is it a run folder?")
-    config, device = requested_config(args, live=False, config_file=resume.config if resume else None)
+    if resume is not None:
+        refuse_a_live_run(resume)
     if not config.dataset.path:
         log.info("no dataset given: running on the generated synthetic room (preset '%s')", config.preset)
     result = run_slam(config, device, resume, args.profile, progress=not args.quiet, overwrite=args.overwrite)
@@ -55,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
         print(format_table(result.metrics))
         print(files_and_next_steps(result.folder))
         if result.metrics.interrupted:
-            resume_command = f"{gsplatam_command()} run --resume {shlex.quote(str(result.folder.path))}"
-            print(f"interrupted: continue with  {resume_command}")
+            print(f"interrupted: continue with  {resume_command(result.folder.path)}")
     return 0
 
 

@@ -19,6 +19,9 @@ from pathlib import Path
 from typing import IO
 
 Writer = Callable[[IO[bytes]], None]
+TEMPORARY_PREFIX = (
+    ".gsplatam-"  # every temporary name this tool makes starts so: a user's `.notes.tmp` is never taken for one
+)
 FILE_MODE = 0o666  # less the umask, as open() creates files
 FOLDER_MODE = 0o777  # less the umask, as mkdir() creates folders
 
@@ -35,10 +38,24 @@ def current_umask() -> int:
     return mask
 
 
-def temporary_folder(parent: Path, prefix: str) -> Path:
-    """A new empty folder in `parent` for a set of files that is renamed into place once whole,
-    with the mode a plain mkdir gives (mkdtemp's own is 0700)."""
-    path = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+def temporary_name(path: Path, tag: str) -> Path:
+    """A temporary name beside `path` (`tag` makes it unique), with this tool's prefix."""
+    return path.with_name(f"{TEMPORARY_PREFIX}{path.name}.{tag}.tmp")
+
+
+def temporaries_of(pattern: str) -> tuple[str, ...]:
+    """Glob patterns, relative as `pattern` is, of the temporary files and folders this tool
+    leaves beside a file matching `pattern` when killed while writing it: with its prefix, and
+    as versions before the prefix named them (`.NAME.*.tmp`)."""
+    folder, _, name = pattern.rpartition("/")
+    beside = f"{folder}/" if folder else ""
+    return f"{beside}{TEMPORARY_PREFIX}{name}.*.tmp", f"{beside}.{name}.*.tmp"
+
+
+def temporary_folder(parent: Path, name: str) -> Path:
+    """A new empty folder in `parent` for a set of files that is renamed into place once whole
+    as `name`, with the mode a plain mkdir gives (mkdtemp's own is 0700)."""
+    path = Path(tempfile.mkdtemp(prefix=f"{TEMPORARY_PREFIX}{name}.", suffix=".tmp", dir=parent))
     path.chmod(FOLDER_MODE & ~current_umask())
     return path
 
@@ -69,7 +86,7 @@ def atomic_write_all(writes: Mapping[Path, Writer]) -> None:
 def _new_temporary(path: Path) -> tuple[int, str]:
     """A new file beside `path`, created exclusively under a random name (never through a link),
     with the mode the umask leaves of FILE_MODE: (its descriptor, its name)."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=f"{TEMPORARY_PREFIX}{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         os.fchmod(fd, FILE_MODE & ~current_umask())
     except BaseException:

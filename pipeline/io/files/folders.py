@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.errors import UserError
+from pipeline.io.files.atomic import temporary_name
 
 
 def make_folder(path: Path, what: str) -> Path:
@@ -29,16 +30,35 @@ def atomic_folder(path: Path, fill: Callable[[Path], None]) -> None:
     then takes `path`'s place (replacing an earlier folder there), so the folder appears complete
     or not at all; if `fill` fails (a full disk) the temporary folder goes and `path` stays as it was."""
     tag = f"{os.getpid()}.{secrets.token_hex(4)}"
-    staged, earlier = path.with_name(f".{path.name}.{tag}.tmp"), path.with_name(f".{path.name}.{tag}.old.tmp")
+    staged, earlier = temporary_name(path, tag), temporary_name(path, f"{tag}.old")
     staged.mkdir()  # the umask's mode, as any folder
     try:
         fill(staged)
-        if path.exists():
+        if os.path.lexists(path):
             path.rename(earlier)
         staged.rename(path)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
-        if earlier.exists() and not path.exists():
+        if os.path.lexists(earlier) and not os.path.lexists(path):
             earlier.rename(path)
         raise
-    shutil.rmtree(earlier, ignore_errors=True)
+    if earlier.is_symlink():  # a link to elsewhere: the link goes, never what it points at
+        earlier.unlink()
+    else:
+        shutil.rmtree(earlier, ignore_errors=True)
+
+
+def inside(folder: Path, relative: str | Path) -> Path | None:
+    """`folder / relative` where it lies in `folder` without passing through a link: a relative
+    path without `..` none of whose folders on the way is a symbolic link (the last part may be
+    one: it is then acted on itself, never followed). None otherwise: a path a file names (a run
+    folder received from someone else) never leads this tool outside the folder."""
+    parts = Path(relative).parts
+    if not parts or Path(relative).is_absolute() or ".." in parts:
+        return None
+    path = folder
+    for part in parts[:-1]:
+        path = path / part
+        if path.is_symlink():
+            return None
+    return folder.joinpath(*parts)

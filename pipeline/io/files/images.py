@@ -33,15 +33,24 @@ def read_color(path: Path) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def read_depth_image(path: Path) -> np.ndarray:
+    """A depth image as stored: [H, W] uint16 (units of the dataset's depth scale) or float32
+    (metres); DataError naming it otherwise."""
+    raw = _imread(path, cv2.IMREAD_UNCHANGED)
+    if raw.ndim != 2:
+        raise DataError(f"depth image {path} has {raw.shape[2]} channels, expected 1")
+    if raw.dtype not in (np.uint16, np.float32):
+        raise DataError(f"depth image {path} has type {raw.dtype}, expected uint16 or float32")
+    return raw
+
+
 def read_depth(path: Path, scale: float, shape: tuple[int, int]) -> np.ndarray:
     """Depth in metres, 0 = invalid: [H, W] float32.
 
     uint16 images are divided by `scale`; float32 images (e.g. TIFF) are taken as metres.
     `shape` (H, W) is the size of the matching colour image.
     """
-    raw = _imread(path, cv2.IMREAD_UNCHANGED)
-    if raw.ndim != 2:
-        raise DataError(f"depth image {path} has {raw.shape[2]} channels, expected 1")
+    raw = read_depth_image(path)
     if raw.shape != shape:
         raise DataError(f"depth image {path} is {raw.shape[1]}x{raw.shape[0]}, colour is {shape[1]}x{shape[0]}")
     if raw.dtype == np.uint16:
@@ -51,8 +60,7 @@ def read_depth(path: Path, scale: float, shape: tuple[int, int]) -> np.ndarray:
             raise DataError(f"depth image {path} holds NaN or infinite values")
         if (raw < 0).any():
             raise DataError(f"depth image {path} holds negative depths")
-        return raw
-    raise DataError(f"depth image {path} has type {raw.dtype}, expected uint16 or float32")
+    return raw
 
 
 def resize_rgbd(

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from pipeline.errors import DataError
-from pipeline.geometry import quat_to_rotmat
+from pipeline.geometry import quat_to_rotmat, rotmats_to_quats
 from pipeline.io.files.atomic import atomic_write_text
 
 
@@ -20,26 +20,10 @@ def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_quat_xyzw(rotation: np.ndarray) -> np.ndarray:
-    """[3, 3] rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
-    r = np.asarray(rotation, dtype=np.float64)
-    # Shepperd's method: pick the largest diagonal combination for numerical stability.
-    diag = [r[0, 0] + r[1, 1] + r[2, 2], r[0, 0], r[1, 1], r[2, 2]]
-    k = int(np.argmax(diag))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + diag[0])
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
-    quat = np.asarray(q)
-    quat /= np.linalg.norm(quat)
-    return -quat if quat[3] < 0 else quat
+    """[..., 3, 3] rotation matrices -> unit quaternions [..., 4] (x, y, z, w) with w >= 0
+    (geometry's conversion, float64)."""
+    wxyz = rotmats_to_quats(torch.from_numpy(np.asarray(rotation, dtype=np.float64))).numpy()
+    return wxyz[..., [1, 2, 3, 0]]
 
 
 def pose_from_tum_row(row: np.ndarray) -> np.ndarray:
@@ -109,8 +93,8 @@ def write_tum_trajectory(path: Path, timestamps: np.ndarray, c2w: np.ndarray) ->
 def tum_trajectory_text(timestamps: np.ndarray, c2w: np.ndarray) -> str:
     """Camera-to-world poses [N, 4, 4] with their timestamps [N] seconds as a TUM trajectory file."""
     lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for t, pose in zip(timestamps, c2w):
-        q = matrix_to_quat_xyzw(pose[:3, :3])
+    quats = matrix_to_quat_xyzw(np.asarray(c2w)[:, :3, :3]) if len(c2w) else np.zeros((0, 4))
+    for t, pose, q in zip(timestamps, c2w, quats):
         x, y, z = pose[:3, 3]
         lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
     return "\n".join(lines) + "\n"

@@ -8,8 +8,9 @@ float32 metres), so a checkpoint of hundreds of keyframes stays a plain tensor f
 from __future__ import annotations
 
 import json
+import math
 import os
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -98,8 +99,25 @@ def read_checkpoint(path: Path) -> tuple[Checkpoint, RunDescription]:
         checkpoint = _checkpoint_of(header, tensors)
         check_tensors(checkpoint, run)
         return checkpoint, run
-    except (KeyError, ValueError, TypeError, IndexError) as exc:
+    except (
+        KeyError,
+        ValueError,
+        TypeError,
+        IndexError,
+        AttributeError,
+    ) as exc:  # AttributeError: JSON of another shape
         raise DataError(f"{path} is not a gsplatam checkpoint ({exc.__class__.__name__}: {exc})") from None
+
+
+def read_description(path: Path) -> RunDescription | None:
+    """The run a checkpoint was written by, from its header alone (no tensor is read); None where
+    there is no readable header (`read_checkpoint` then says what is wrong)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = json.loads((f.metadata() or {})["gsplatam"])
+        return RunDescription.from_json(header["run"])
+    except (SafetensorError, OSError, ValueError, RuntimeError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def _checkpoint_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Checkpoint:
@@ -183,9 +201,23 @@ def _loop_state_of(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> 
         node_positions=[int(p) for p in header["node_positions"]],
         odometry_information=tensors["loops.odometry_information"],
         loops=edges,
-        tally=LoopTally(**{k: type(getattr(LoopTally(), k))(v) for k, v in header["tally"].items()}),
+        tally=_tally_of(header["tally"]),
         closed=closed,
     )
+
+
+def _tally_of(table: dict[str, Any]) -> LoopTally:
+    """Loop closure's counts from the header (ValueError for a count it does not know, or one
+    negative or not finite; counts missing, from an older version, are 0)."""
+    if not isinstance(table, dict):
+        raise ValueError(f"loops.tally is a {type(table).__name__}, not an object of counts")
+    kinds = {item.name: type(getattr(LoopTally(), item.name)) for item in fields(LoopTally)}
+    if unknown := sorted(set(table) - set(kinds)):
+        raise ValueError(f"loops.tally holds {unknown[0]!r}, not a count loop closure keeps")
+    counts = {name: kinds[name](value) for name, value in table.items()}
+    if bad := [name for name, value in counts.items() if not (math.isfinite(value) and value >= 0)]:
+        raise ValueError(f"loops.tally's {bad[0]} is {counts[bad[0]]}, not a count")
+    return LoopTally(**counts)
 
 
 def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
@@ -212,12 +244,19 @@ def check_tensors(checkpoint: Checkpoint, run: RunDescription) -> None:
     if checkpoint.tracking.tracked_poses is not None:
         _check("tracked_poses", checkpoint.tracking.tracked_poses, (checkpoint.frames_done, 4, 4))
     if (loops := checkpoint.mapping.loops) is not None:
-        _check_loops(loops, n)
+        _check_loops(loops, n, checkpoint.frames_done)
 
 
-def _check_loops(loops: LoopState, gaussians: int) -> None:
-    """ValueError naming the first of loop closure's tensors that is not what a run writes."""
+def _check_loops(loops: LoopState, gaussians: int, frames: int) -> None:
+    """ValueError naming the first of loop closure's tensors or node positions (among the run's
+    `frames` poses, in the order the keyframes were kept) that is not what a run writes."""
     nodes = len(loops.node_positions)
+    positions = loops.node_positions
+    if any(not 0 <= p < frames for p in positions) or positions != sorted(set(positions)):
+        wrong = next((p for p in positions if not 0 <= p < frames), positions)
+        raise ValueError(
+            f"loops.node_positions names frame position(s) {wrong}: not keyframes of {frames} frames in order"
+        )
     _check("loops.creator", loops.creator, (gaussians,), torch.int64)
     if gaussians and not bool(((loops.creator >= -1) & (loops.creator < nodes)).all()):
         raise ValueError(f"loops.creator names a node outside -1..{nodes - 1}")

@@ -1,7 +1,7 @@
 """The common 3D Gaussian-splatting PLY: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3.
 
-Binary little-endian float32, as written by the original 3DGS code and read by common splat
-viewers. Colours are stored as degree-0 spherical-harmonic coefficients, f_dc = (rgb - 0.5) / C0;
+Written binary little-endian float32, as by the original 3DGS code and read by common splat
+viewers; read in any encoding (plyfile). Colours are stored as degree-0 spherical-harmonic coefficients, f_dc = (rgb - 0.5) / C0;
 opacity as a logit; scales as logs (an isotropic scale repeated); rotations as (w, x, y, z).
 """
 
@@ -22,7 +22,6 @@ PROPERTIES = (
     + [f"scale_{i}" for i in range(3)]
     + [f"rot_{i}" for i in range(4)]
 )
-PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
 
 
 def splat_fields(gaussians: Gaussians) -> dict[str, torch.Tensor]:
@@ -96,49 +95,33 @@ def gaussian_ply_bytes(gaussians: Gaussians) -> bytes:
 
 
 def read_ply(path: Path) -> Gaussians:
-    """Read a 3DGS PLY (any property order; extra properties such as f_rest_* are ignored)."""
+    """A 3DGS map from a PLY file of any encoding plyfile reads (ASCII, binary of either byte
+    order; any property order, extra properties such as f_rest_* ignored), or the compressed PLY
+    (`export --to compressed-ply`, decoded by gsply: the 'spz' extra). DataError naming the file
+    where it is none of these, or holds NaN or infinite values."""
+    from plyfile import PlyData, PlyParseError
+
     try:
-        raw = Path(path).read_bytes()
+        data = PlyData.read(str(path))
     except OSError as exc:
-        raise DataError(f"cannot read {path}: {exc}") from None
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply") or end < 0:
-        raise DataError(f"{path} is not a PLY file")
-    header = raw[:end].decode("ascii", errors="replace").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        raise DataError(f"{path}: only binary little-endian PLY is supported")
-    count, names, types = None, [], []
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            if len(parts) != 3 or not parts[2].isdigit():
-                raise DataError(f"{path}: malformed header line '{line}'")
-            count = int(parts[2])
-        elif parts[:1] == ["property"] and len(parts) == 3:
-            if parts[1] not in PLY_TYPES:
-                raise DataError(f"{path}: unsupported property type {parts[1]}")
-            types.append(PLY_TYPES[parts[1]])
-            names.append(parts[2])
-    if count is None:
+        raise DataError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except (PlyParseError, ValueError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path} is not a PLY file that can be read ({exc})") from None
+    elements = {element.name: element for element in data.elements}
+    if "chunk" in elements:  # the compressed PLY: positions, rotations, scales and colours packed per chunk
+        return _read_compressed_ply(path)
+    if "vertex" not in elements:
         raise DataError(f"{path}: the header has no 'element vertex' line")
+    table = elements["vertex"].data
+    names = table.dtype.names or ()
     missing = [p for p in PROPERTIES if p not in names and not p.startswith("n")]
     if missing:
         raise DataError(f"{path}: not a Gaussian-splatting PLY (missing {', '.join(missing)})")
-    try:
-        layout = np.dtype(list(zip(names, types)))
-    except ValueError as exc:  # e.g. a property named twice
-        raise DataError(f"{path}: malformed header ({exc})") from None
-    body = len(raw) - end - len(b"end_header\n")
-    if body < count * layout.itemsize:
-        raise DataError(
-            f"{path} is truncated: its header announces {count} Gaussians, the file holds {body // layout.itemsize}"
-        )
-    table = np.frombuffer(raw, dtype=layout, count=count, offset=end + len(b"end_header\n"))
     if not all(np.isfinite(table[name]).all() for name in PROPERTIES if name in names):
         raise DataError(f"{path} holds NaN or infinite values: not a map a run saved")
 
     def cols(*keys: str) -> torch.Tensor:
-        return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=1))
+        return torch.from_numpy(np.stack([np.asarray(table[k], dtype=np.float32) for k in keys], axis=1))
 
     return Gaussians(
         means=cols("x", "y", "z"),
@@ -147,3 +130,22 @@ def read_ply(path: Path) -> Gaussians:
         opacity_logits=cols("opacity")[:, 0],
         colors=cols("f_dc_0", "f_dc_1", "f_dc_2") * SH_C0 + 0.5,
     )
+
+
+def _read_compressed_ply(path: Path) -> Gaussians:
+    """The compressed PLY (PlayCanvas's layout, as gsplat writes it), decoded by gsply."""
+    import gsply
+
+    try:
+        data = gsply.plyread(path)
+    except (ValueError, KeyError, IndexError) as exc:
+        raise DataError(f"{path} is not a compressed PLY that can be read ({exc})") from None
+
+    def tensor(values: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
+
+    columns = [tensor(data.means), tensor(data.quats), tensor(data.scales), tensor(data.opacities), tensor(data.sh0)]
+    if not all(bool(torch.isfinite(c).all()) for c in columns):
+        raise DataError(f"{path} holds NaN or infinite values: not a map a run saved")
+    means, quats, log_scales, opacity_logits, sh0 = columns
+    return Gaussians(means, quats, log_scales, opacity_logits.reshape(-1), sh0 * SH_C0 + 0.5)

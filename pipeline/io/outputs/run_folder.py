@@ -17,12 +17,21 @@ import numpy as np
 from pipeline import __version__
 from pipeline.config import Config, load_config, to_toml
 from pipeline.errors import DataError, OutputError
-from pipeline.io.files.atomic import atomic_export, atomic_write_all, atomic_write_text, bytes_writer
+from pipeline.io.files.atomic import (
+    TEMPORARY_PREFIX,
+    atomic_export,
+    atomic_write_all,
+    atomic_write_text,
+    bytes_writer,
+    temporaries_of,
+)
+from pipeline.io.files.folders import inside
 from pipeline.io.files.g2o import G2oEdge, g2o_text
 from pipeline.io.files.trajectory import tum_trajectory_text
 from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_checkpoint
 from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
+from pipeline.io.outputs.exports_record import ExportsRecord, text_of
 from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics
 from pipeline.io.outputs.ply import gaussian_ply_bytes, write_ply
@@ -38,12 +47,17 @@ from pipeline.slam.state import Checkpoint, LoopState
 RESULTS = (
     "frames.csv", "metrics.json", "trajectory.txt", "groundtruth.txt", "map.ply", "checkpoint.safetensors",
     "trace.json", "profile.txt", "intrinsics.json", "exports.json", "trajectory_as_tracked.txt", "pose_graph.g2o",
+    "trajectory.png", "renders",
 )  # fmt: skip
 RECORDING = "recording"  # serve's live.record: the input in the TUM layout
 MARKER = ".gsplatam-run"  # written when a run starts in a folder: what makes it a run folder of this tool
 MARKER_FORMAT = "gsplatam.run"
 # The folders a run or an export fills, with what it writes into each (globs in the folder).
-FILLED_FOLDERS = {RECORDING: RECORDING_FILES, EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES}
+FILLED_FOLDERS = {
+    RECORDING: RECORDING_FILES,
+    EXPORTERS["nerfstudio"].DEFAULT_NAME: NERFSTUDIO_FILES,
+    "renders": ("frame*.png",),
+}
 
 
 class RunFolder:
@@ -61,6 +75,8 @@ class RunFolder:
         self.trajectory_as_tracked = path / "trajectory_as_tracked.txt"  # with loop closure: before its corrections
         self.pose_graph = path / "pose_graph.g2o"  # with loop closure: the keyframe pose graph (g2o's format)
         self.map = path / "map.ply"
+        self.trajectory_plot = path / "trajectory.png"  # the trajectory against the reference (pictures.py)
+        self.renders = path / "renders"  # the evaluated frames' renders beside the input (pictures.py)
         self.checkpoint = path / "checkpoint.safetensors"
         self.intrinsics = path / "intrinsics.json"  # the camera at SLAM's working size (IntrinsicsRecorder)
         self.trace = path / "trace.json"  # --profile: the torch profiler's Chrome trace
@@ -68,7 +84,9 @@ class RunFolder:
         self.recording = path / RECORDING  # a TUM dataset: `gsplatam run` reads it
         self.marker = path / MARKER  # this is a run folder of gsplatam (`--overwrite` acts on no other)
         self.lock = path / LOCK_NAME  # held while a process writes the folder (run_lock.py)
-        self.exports_record = path / "exports.json"  # each export's path and the map it came from
+        defaults = {fmt: exporter.DEFAULT_NAME for fmt, exporter in EXPORTERS.items()}
+        self.exports = ExportsRecord(path, defaults)  # each export's path and the map it came from
+        self.exports_record = self.exports.path
         self._frames_file: IO[str] | None = None
 
     @staticmethod
@@ -135,48 +153,55 @@ class RunFolder:
 
     def remove_earlier_run(self) -> None:
         """Remove what an earlier run and its exports wrote (its config, `earlier_run`, the files
-        they put into their folders, temporary files left by a kill), and nothing else."""
-        for name in [*self._recorded_exports_inside(), self.config.name, *self.earlier_run()]:
-            path = self.path / name
+        they put into their folders, temporary files left by a kill), and nothing else: no path
+        is followed through a link (a link among them is removed itself)."""
+        recorded = [(path, NERFSTUDIO_FILES if fmt == "nerfstudio" else None) for fmt, path in self.exports.inside()]
+        named = [(self.path / name, FILLED_FOLDERS.get(name)) for name in [self.config.name, *self.earlier_run()]]
+        for path, filled in [*recorded, *named]:
             if path.is_symlink():  # the link goes, never what it points at
                 path.unlink()
-            elif name in FILLED_FOLDERS:
-                _remove_filled(path, FILLED_FOLDERS[name])
+            elif filled is not None and path.is_dir():
+                _remove_filled(path, filled)
             elif path.is_file():
                 path.unlink()
-        for path in self.path.glob(".*.tmp"):  # files, and folders of a killed multi-file export
+        for path in self._temporaries():  # files, and folders of a killed multi-file export
             if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path, ignore_errors=True)
             else:
                 with contextlib.suppress(FileNotFoundError):
                     path.unlink()
 
+    def _temporaries(self) -> set[Path]:
+        """The temporary files and folders this tool left in the folder (a kill mid-write): those
+        of its prefix, and those an earlier version named after a file of a run (a user's own
+        `.notes.tmp` is neither)."""
+        names = [*RESULTS, self.config.name, MARKER, RECORDING, *(e.DEFAULT_NAME for e in EXPORTERS.values())]
+        patterns = [f"{TEMPORARY_PREFIX}*.tmp", *(p for name in names for p in temporaries_of(name))]
+        return {path for pattern in patterns for path in self.path.glob(pattern)}
+
     def exports_made(self) -> dict[str, Any]:
         """exports.json: format -> {path, frames, frames_mapped, gaussians, map_version[, stale]};
-        {} where there is none (or it cannot be read)."""
-        try:
-            record = json.loads(self.exports_record.read_text())
-        except (OSError, ValueError):
-            return {}
-        return record if isinstance(record, dict) else {}
+        {} where there is none; rebuilt (and reported) where it is not sound."""
+        return self.exports.read()[0]
 
     def record_export(self, fmt: str, target: Path, checkpoint: Checkpoint) -> None:
-        """Note in exports.json that `target` holds `fmt` of the map of `checkpoint`."""
-        record = self.exports_made()
-        record[fmt] = {
+        """Note in exports.json that `target` holds `fmt` of the map of `checkpoint` (under the
+        record's lock: exports made at once each keep their entry)."""
+        entry = {
             "path": str(target.relative_to(self.path) if target.is_relative_to(self.path) else target.absolute()),
             "frames": checkpoint.frames_done,
             "frames_mapped": checkpoint.mapping.frames_seen,
             "gaussians": len(checkpoint.gaussians),
             "map_version": self._map_version(checkpoint.frames_done),
         }
-        with _writing(self.exports_record):
-            atomic_write_text(self.exports_record, _json(record))
+        with _writing(self.exports_record), self.exports.locked():
+            record, _ = self.exports.read()
+            self.exports.write({**record, fmt: entry})
 
-    def _stale_exports(self, checkpoint: Checkpoint) -> dict[str, Any] | None:
-        """exports.json with every export of another map than `checkpoint`'s marked stale; None
-        when nothing changes (no export, or all marked already)."""
-        record, changed = self.exports_made(), False
+    def _mark_stale(self, record: dict[str, Any], checkpoint: Checkpoint) -> bool:
+        """Mark every export of `record` made of another map than `checkpoint`'s stale. -> whether
+        any was marked (none where there is no export, or all are marked already)."""
+        changed = False
         for entry in record.values():
             if "stale" not in entry and (entry.get("frames"), entry.get("gaussians")) != (
                 checkpoint.frames_done,
@@ -184,22 +209,28 @@ class RunFolder:
             ):
                 entry["stale"] = f"made from {entry.get('frames')} frames; the map now holds {checkpoint.frames_done}"
                 changed = True
-        return record if changed else None
-
-    def _recorded_exports_inside(self) -> list[str]:
-        """The exports exports.json names inside this folder (a user's --output elsewhere stays)."""
-        paths = [Path(str(entry.get("path", ""))) for entry in self.exports_made().values()]
-        return [str(p) for p in paths if p.parts and not p.is_absolute() and ".." not in p.parts]
+        return changed
 
     def _map_version(self, frames_done: int) -> int | None:
         """The map version frames.csv gives the last of the first `frames_done` frames."""
+        kept = [row for row in self._frame_rows() if int(row["index"]) < frames_done]
+        return int(kept[-1]["map_version"]) if kept and (kept[-1]["map_version"] or "").isdigit() else None
+
+    def frame_timestamps(self) -> dict[int, float]:
+        """Frame index -> its timestamp in seconds, as frames.csv gives it ({} where it cannot be read)."""
+        stamps = {}
+        for row in self._frame_rows():
+            with contextlib.suppress(TypeError, ValueError):
+                stamps[int(row["index"])] = float(row["timestamp"])
+        return stamps
+
+    def _frame_rows(self) -> list[dict[str, str]]:
+        """frames.csv's rows with a frame index; [] where it cannot be read."""
         try:
             with open(self.frames_csv, newline="") as f:
-                rows = [row for row in csv.DictReader(f) if row.get("index", "").isdigit()]
-        except OSError:
-            return None
-        kept = [row for row in rows if int(row["index"]) < frames_done]
-        return int(kept[-1]["map_version"]) if kept and kept[-1]["map_version"].isdigit() else None
+                return [row for row in csv.DictReader(f) if (row.get("index") or "").isdigit()]
+        except (OSError, UnicodeDecodeError, csv.Error):
+            return []
 
     def write_config(self, config: Config) -> None:
         with _writing(self.config):
@@ -256,9 +287,15 @@ class RunFolder:
             tracked = checkpoint.poses if tracked is None else tracked
             files[self.trajectory_as_tracked] = tum_trajectory_text(timestamps, tracked.double().numpy()).encode()
             files[self.pose_graph] = pose_graph_text(loops).encode()
-        if (stale := self._stale_exports(checkpoint)) is not None:
-            files[self.exports_record] = _json(stale).encode()
-        atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
+        with self.exports.locked():
+            record, rebuilt = self.exports.read()
+            if self._mark_stale(record, checkpoint) or rebuilt:
+                files[self.exports_record] = text_of(record).encode()
+            atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
+        if loops is None:  # a resume without loop closure: its files would describe a shorter run
+            for path in (self.trajectory_as_tracked, self.pose_graph):
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
 
     def write_map(self, gaussians: Gaussians) -> None:
         write_ply(self.map, gaussians)
@@ -312,21 +349,18 @@ def _json(value: Any) -> str:
 
 
 def _remove_filled(folder: Path, written: tuple[str, ...]) -> None:
-    """Remove the files matching `written` (and temporary files) from `folder`, then the
-    folders left empty: a folder holding anything else stays with it."""
-    for pattern in (*written, "**/.*.tmp"):
+    """Remove the files matching `written` (and their temporary files) from `folder`, then the
+    folders left empty: a folder holding anything else stays with it. Nothing is reached through
+    a link."""
+    for pattern in (*written, *(p for name in written for p in temporaries_of(name))):
         for path in folder.glob(pattern):
-            if path.is_file() and not _through_link(path, folder):
+            if inside(folder, path.relative_to(folder)) is not None and (path.is_file() or path.is_symlink()):
                 path.unlink()
-    for path in sorted((p for p in folder.rglob("*") if p.is_dir()), reverse=True) + [folder]:
+    for path in sorted((p for p in folder.rglob("*") if p.is_dir() and not p.is_symlink()), reverse=True):
         with contextlib.suppress(OSError):
             path.rmdir()
-
-
-def _through_link(path: Path, folder: Path) -> bool:
-    """Whether `path` lies in `folder` only through a symlinked folder (removing it would reach
-    outside the run folder)."""
-    return any((folder / part).is_symlink() for part in path.relative_to(folder).parents if part.parts)
+    with contextlib.suppress(OSError):
+        folder.rmdir()
 
 
 @contextlib.contextmanager

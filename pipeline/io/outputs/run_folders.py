@@ -9,9 +9,10 @@ marker or, from before the marker, with both config.toml and frames.csv (a datas
 `groundtruth.txt` is never touched). `--resume` is the one way to continue a run folder.
 
 When a new run ends having saved something, the output folder's `latest` points at it (a
-symlink, or a text file naming it where the file system has no symlinks); a run that saved
-nothing (it failed or was stopped before its first save) removes what it wrote, its folder with
-it when nothing else is left there, and leaves `latest` alone. A `latest` that is not this
+symlink, or a text file naming it where the file system has no symlinks); a run that processed
+no frame (it failed or was stopped before its first) removes what it wrote, its folder with it
+when nothing else is left there, and leaves `latest` alone. A folder holding a processed frame
+is never removed. A `latest` that is not this
 module's pointer (a user's own file, folder or link to elsewhere) is never replaced: the run
 says so in one line and goes on.
 """
@@ -26,7 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.io.files.atomic import atomic_write_text
+from pipeline.io.files.atomic import atomic_write_text, temporary_name
 from pipeline.io.files.folders import make_folder
 from pipeline.io.outputs.run_folder import MARKER, RunFolder
 
@@ -50,6 +51,8 @@ def new_run_folder(output: Path, stem: str, name: str = "", overwrite: bool = Fa
     check_output(output)
     if name == LATEST:
         raise UserError(f"'{LATEST}' names the pointer to the newest run: choose another --name")
+    if name:
+        _refuse_earlier_run(RunFolder(output / name), overwrite)  # before the lock file: a refusal writes nothing
     folder = RunFolder(_named(output, name) if name else _timestamped(output, stem))
     with folder.claimed():
         if name:
@@ -89,9 +92,18 @@ def _timestamped(output: Path, stem: str) -> Path:
 
 
 def _clear_earlier_run(folder: RunFolder, overwrite: bool) -> None:
-    found = folder.earlier_run()
+    """Remove the earlier run in `folder` (locked), if there is one and `overwrite` allows it."""
+    if _refuse_earlier_run(folder, overwrite):
+        folder.remove_earlier_run()
+        log.info("--overwrite: removed the earlier run's files from %s", folder.path)
+
+
+def _refuse_earlier_run(folder: RunFolder, overwrite: bool) -> bool:
+    """UserError where `folder` holds files of a run that a new run may not replace; -> whether
+    it holds any (to be removed, with `overwrite`)."""
+    found = folder.earlier_run() if folder.path.is_dir() else []
     if not found:
-        return
+        return False
     if not folder.is_run():
         raise UserError(
             f"{folder.path} holds {', '.join(found)} but is not a run folder of gsplatam (no {MARKER}, nor "
@@ -102,8 +114,7 @@ def _clear_earlier_run(folder: RunFolder, overwrite: bool) -> None:
             f"{folder.path} holds an earlier run ({', '.join(found)}): continue it with "
             f"--resume {folder.path}, replace it with --overwrite, or choose another --name"
         )
-    folder.remove_earlier_run()
-    log.info("--overwrite: removed the earlier run's files from %s", folder.path)
+    return True
 
 
 def _settle(folder: RunFolder) -> None:
@@ -111,6 +122,9 @@ def _settle(folder: RunFolder) -> None:
     try:
         if folder.holds_results():
             _point_latest_at(folder.path)
+            return
+        if folder.frame_timestamps():  # a folder holding a processed frame is never removed
+            log.info("%s is kept: frames.csv holds frames processed, though no map was saved", folder.path)
             return
         folder.remove_unfinished()
         log.info("nothing was saved: removed what this run wrote in %s", folder.path)
@@ -138,7 +152,7 @@ def _point_latest_at(folder: Path) -> None:
     if not _is_pointer(latest):
         log.warning("%s is not gsplatam's pointer to the newest run (a file or folder of yours): left as it is", latest)
         return
-    staged = folder.parent / f".{LATEST}.{os.getpid()}.tmp"
+    staged = temporary_name(folder.parent / LATEST, str(os.getpid()))
     try:
         with contextlib.suppress(FileNotFoundError):
             staged.unlink()

@@ -76,6 +76,7 @@ class RenderRecord:
     pixels: str = "valid-depth pixels only"
     keyframes_psnr_db: float | None = None  # the map at every keyframe's pose against its stored (8-bit) colour
     keyframes: int = 0
+    depth_rmse_cm: float | None = None  # root mean square of the depth error (None: a version before it)
 
 
 @dataclass(frozen=True)

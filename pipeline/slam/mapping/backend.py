@@ -89,6 +89,8 @@ class MappingBackend:
         self.latest: MapVersion | None = None
         self.intrinsics: torch.Tensor | None = None  # [3, 3] the frames' camera (one per run), once mapped
         self._cycle: list[int] = []  # keyframe indices still to visit in this round of refinement passes
+        self._local_turn = False  # the last idle refinement pass took the newest keyframe's covisible window
+        self._covisible: tuple[tuple[int, int], list[int]] = ((-1, 0), [])  # (newest index, store size) -> positions
         self.on_step: Callable[[], None] | None = None  # called before every optimiser step (a sign of life)
         self.clock = StageClock(device)
 
@@ -128,14 +130,17 @@ class MappingBackend:
 
     def map(self, tracked: TrackedFrame, is_last: bool = False) -> MappedFrame:
         """Densify, select the window and optimise the map with the tracked frame (`is_last`:
-        the run's last, kept as a keyframe); publish the new version."""
+        the run's last, kept as a keyframe; so is one the tracking side chose, and every
+        `keyframes.every`-th frame given); publish the new version."""
         frame, c2w = tracked.frame, tracked.c2w
         self.intrinsics = frame.intrinsics
         if tracked.ready is not None:
             torch.cuda.current_stream().wait_event(tracked.ready)
             for tensor in (frame.color, frame.depth, frame.intrinsics, c2w):
                 tensor.record_stream(torch.cuda.current_stream())
-        keeps = self.frames_seen - self.last_keyframe_seen >= self.settings.keyframes.every or is_last
+        keeps = (
+            tracked.keyframe or is_last or self.frames_seen - self.last_keyframe_seen >= self.settings.keyframes.every
+        )
         with self.clock.stage("densify"):
             if self.gaussians is None:
                 added = self._initialise(frame, c2w)
@@ -179,14 +184,19 @@ class MappingBackend:
                 self.loops.kept(keep)
 
     def refine(self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0) -> int:
-        """A refinement pass: `renders` view renders over `views` stored keyframes (0: as many as
-        `mapping.window`) taken from a shuffled cycle through all of them, so that every keyframe
-        is revisited; their poses are optimised too (`mapping.refine_pose_lr`; the first keyframe
+        """A refinement pass: `renders` view renders over `views` stored keyframes taken from a
+        shuffled cycle through all of them, so that every keyframe is revisited (0: a window of
+        at most `mapping.window`, in turn the newest keyframe's covisible window and the next of
+        that cycle); their poses are optimised too (`mapping.refine_pose_lr`; the first keyframe
         stays: it fixes the map's frame). Publishes the result; `should_stop` ends it early (a
         frame waits). -> the renders done (0 before the first frame)."""
         if self.gaussians is None or self.intrinsics is None or renders <= 0:
             return 0
-        positions = self._refinement_views(views or self.mapping.window)
+        if views:
+            positions = self._refinement_views(views)
+        else:
+            self._local_turn = not self._local_turn
+            positions = self._covisible_views() if self._local_turn else self._refinement_views(self.mapping.window)
         chosen = [self.keyframes[p] for p in positions]
         fixed = frozenset(i for i, p in enumerate(positions) if p == 0)
         plan = WindowPlan(renders, should_stop, self.mapping.refine_pose_lr, fixed, self.on_step)
@@ -230,6 +240,25 @@ class MappingBackend:
             if position is not None and position not in picks:
                 picks.append(position)
         return picks
+
+    def _covisible_views(self) -> list[int]:
+        """Positions of the newest keyframe and of the stored ones that see what it sees
+        (`select_window`: at most `mapping.window` in all), chosen once per newest keyframe."""
+        assert self.intrinsics is not None
+        newest = self.keyframes[-1]
+        key = (newest.index, len(self.keyframes))
+        if self._covisible[0] != key:
+            older = select_window(
+                self.keyframes[:-1],
+                newest.depth,
+                self.intrinsics,
+                newest.c2w,
+                window=self.mapping.window,
+                samples=self.settings.keyframes.overlap_samples,
+                generator=self.generator,
+            )
+            self._covisible = (key, older + [len(self.keyframes) - 1])
+        return list(self._covisible[1])
 
     def skip(self) -> MappedFrame:
         """Pass a tracked frame on without mapping it (tracking judged it lost)."""

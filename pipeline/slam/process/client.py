@@ -3,18 +3,25 @@ reads its map versions, asks for its state, and watches that it lives.
 
 A listener thread takes the mapping process's messages as they come (requests for larger map
 slots are answered at once, so mapping never waits on tracking's frame clock) and checks, every
-WATCH_S, that the process is alive and has shown a sign of life within `slam.backend_timeout_s`.
+WATCH_S, that the process is alive and has shown a sign of life within `slam.backend_timeout_s`
+of this process's own running time: a stretch in which this process did not run itself (Ctrl-Z
+on the terminal, SIGSTOP to the group) says nothing of the mapping process and is not counted.
 A failure is kept and raised (MappingProcessFailed) from the next call on the tracking side.
+
+This process owns shutdown: the mapping process is started with SIGINT and SIGTERM blocked (it
+then ignores them; mapping_process.py) and ends when this process ends.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import queue
+import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from typing import Any
 
@@ -28,8 +35,16 @@ from pipeline.slam.loops.detection import closed_loop_line
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
-from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
-from pipeline.slam.process.shared_map import NEWEST_SLOT, VERSION, MapControl, MapReader
+from pipeline.slam.process.mapping_process import PARENT_SIGNALS, MappingSetup, run_mapping_process
+from pipeline.slam.process.shared_map import (
+    NEWEST_SLOT,
+    VERSION,
+    MapControl,
+    MapReader,
+    SharedMemoryShort,
+    share,
+    shared_memory_advice,
+)
 from pipeline.slam.state import BackendState
 
 log = logging.getLogger("gsplatam")
@@ -37,6 +52,20 @@ log = logging.getLogger("gsplatam")
 WATCH_S = 0.2  # how often the listener checks the mapping process (a death is noticed this soon)
 STARTUP_S = 120.0  # a mapping process that has not begun its loop this long after its start has failed
 SHUTDOWN_S = 30.0  # a mapping process that does not end this long after Shutdown is terminated
+MAX_WATCH_STEP_S = 2 * WATCH_S  # a longer gap between two watches: this process was not running
+ABANDONED = "stopped waiting for the mapping process (a second signal)"
+
+
+@contextlib.contextmanager
+def signals_blocked() -> Iterator[None]:
+    """SIGINT and SIGTERM held back from this thread while inside; a process started meanwhile
+    starts with them blocked (fork keeps the mask, exec too). One sent meanwhile is delivered to
+    this process once they are unblocked again."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, PARENT_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class MappingProcess:
@@ -47,19 +76,23 @@ class MappingProcess:
         self.live = live
         self.control = MapControl.create(context)
         self.reader = MapReader(self.control, 1 if config.gaussians.isotropic else 3, device)
-        self.heartbeat = torch.zeros(1, dtype=torch.float64).share_memory_()  # 0 until the process's first beat
-        self._started = time.monotonic()
+        self.heartbeat = share(torch.zeros(1, dtype=torch.float64))  # 0 until the process's first beat
+        self._last_beat, self._silent_s, self._last_watch = 0.0, 0.0, time.monotonic()
         self.to_mapping = context.Queue()
         self.from_mapping = context.Queue()
         self.ring_books = RingBookkeeping.create(2 if live else max(1, config.slam.max_lead), context)
+        self.stop_refining = context.Event()
         setup = MappingSetup(
             config, str(device), self.control, self.reader.first, self.heartbeat, self.ring_books,
-            self.to_mapping, self.from_mapping, live, max(1, torch.get_num_threads() // 2),
+            self.to_mapping, self.from_mapping, live, max(1, torch.get_num_threads() // 2), self.stop_refining,
         )  # fmt: skip
         self.process = context.Process(target=run_mapping_process, args=(setup,), name="gsplatam-mapping", daemon=True)
-        self.process.start()
+        with signals_blocked():
+            self.process.start()
         self.ring: FrameRing | None = None
         self.failure = ""  # why the mapping process is taken as failed; empty while it works
+        self.abandoned = False  # no longer waited for (a second signal): what is complete is used
+        self.handed: list[int] = []  # the index of every frame handed over, in order
         self.mapped: list[m.FrameMapped] = []  # one per frame handed over and taken, in order
         self.refinement_renders = 0
         self.refinement_s = 0.0
@@ -75,9 +108,21 @@ class MappingProcess:
     # The tracking side's calls (one thread).
 
     def check(self) -> None:
-        """Raise MappingProcessFailed if the mapping process died, hung or failed."""
-        if self.failure:
-            raise MappingProcessFailed(self.failure)
+        """Raise MappingProcessFailed if the mapping process died, hung or failed, or is no
+        longer waited for."""
+        if self.failure or self.abandoned:
+            raise MappingProcessFailed(self.failure or ABANDONED)
+
+    def stop_waiting(self) -> None:
+        """Wait for the mapping process no more (a second signal): every wait on it ends at once
+        with MappingProcessFailed, and what is complete is used. Safe in a signal handler."""
+        self.abandoned = True  # (not stop_refining.set(): its lock is not reentrant; close() ends the process)
+        self._done.put(None)  # SimpleQueue.put is reentrant: a handler may call it during a get
+
+    def unmapped(self) -> list[int]:
+        """The frames handed over that mapping never took (it ended first)."""
+        taken = {report.index for report in self.mapped}
+        return [index for index in self.handed if index not in taken]
 
     def newest_version(self) -> int:
         """The number of the newest complete version (0 before the first)."""
@@ -93,9 +138,11 @@ class MappingProcess:
         assert version is not None
         return version
 
-    def hand_over(self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool) -> bool:
+    def hand_over(
+        self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool, keyframe: bool = False
+    ) -> bool:
         """Give a tracked frame (pose `c2w` [4, 4] camera-to-world, `position` among the run's
-        poses) to mapping. Offline it waits
+        poses; `keyframe`: chosen as one by the tracking side) to mapping. Offline it waits
         for a free ring slot (a bound on tracking's lead); live it never waits. -> whether the
         frame was handed over (live: False when mapping holds every slot)."""
         self.check()
@@ -106,8 +153,14 @@ class MappingProcess:
             slot = ring.put(frame, c2w, WATCH_S)
         if slot is None:
             return False
-        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last))
+        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last, keyframe))
+        self.handed.append(frame.index)
         return True
+
+    def caught_up(self) -> bool:
+        """Mapping has reported on every frame handed over: a version held from now on holds
+        every one it mapped."""
+        return len(self.mapped) >= len(self.handed)
 
     def state(self) -> tuple[BackendState | None, int]:
         """The mapping side's state now (a host copy; None before the first frame) and the map
@@ -138,17 +191,18 @@ class MappingProcess:
     def start_afresh(self) -> None:
         self._call(m.StartAfresh())
 
-    def finish(self, final_renders: int) -> int:
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Map every frame still waiting, then `final_renders` view renders of refinement over
-        every keyframe. -> the renders done."""
-        return self._call(m.Finish(final_renders)).renders
+        every keyframe, which ends at its next step once `should_stop()`. -> the renders done."""
+        return self._call(m.Finish(final_renders), should_stop).renders
 
     def close(self) -> None:
         """End the mapping process (after what it was given) and the listener; safe twice."""
         if self._closing.is_set():
             return
         self._closing.set()
-        if self.process.is_alive() and not self.failure:
+        self.stop_refining.set()
+        if self.process.is_alive() and not self.failure and not self.abandoned:
             self.to_mapping.put(m.Shutdown())
             self.process.join(SHUTDOWN_S)
         if self.process.is_alive():
@@ -167,15 +221,22 @@ class MappingProcess:
             raise ValueError(f"frame {frame.index} is {frame.width}x{frame.height}, unlike the frames before it")
         return self.ring
 
-    def _call(self, message: Any) -> m.Done:
-        """Send a request that the mapping process answers with Done; wait for it."""
+    def _call(self, message: Any, should_stop: Callable[[], bool] | None = None) -> m.Done:
+        """Send a request that the mapping process answers with Done; wait for it (once
+        `should_stop()`, a refinement it runs ends at its next step)."""
         self.check()
         self.to_mapping.put(message)
-        done = self._done.get()
-        if done is None:
-            self.check()
-        assert done is not None
-        return done
+        while True:
+            try:
+                done = self._done.get(timeout=WATCH_S)
+            except queue.Empty:
+                if should_stop is not None and should_stop():
+                    self.stop_refining.set()
+                continue
+            if done is None:
+                self.check()
+            assert done is not None
+            return done
 
     def _wait_for(self, ready: Callable[[], bool]) -> None:
         """Until `ready()`, or the mapping process fails (then MappingProcessFailed)."""
@@ -204,7 +265,11 @@ class MappingProcess:
 
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, m.GrowMap):
-            generation = self.reader.grow(message.capacity, message.keyframe_capacity)
+            try:
+                generation = self.reader.grow(message.capacity, message.keyframe_capacity)
+            except SharedMemoryShort as exc:
+                self._fail(f"the map outgrew the shared memory: {exc}")
+                return
             log.debug("map slots grown to %d Gaussians, %d keyframes", message.capacity, message.keyframe_capacity)
             self.to_mapping.put(m.UseGeneration(generation))
         elif isinstance(message, m.FrameMapped):
@@ -221,21 +286,30 @@ class MappingProcess:
         elif isinstance(message, m.Done):
             self._done.put(message)
         elif isinstance(message, m.MappingFailed):
-            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}")
+            advice = f"; {shared_memory_advice()}" if "unable to allocate shared memory" in message.error else ""
+            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}{advice}")
             log.debug("the mapping process's traceback:\n%s", message.error)
 
     def _watch(self) -> None:
         if not self.process.is_alive():
             self._fail(f"the mapping process ended unexpectedly (exit code {self.process.exitcode})")
             return
+        now = time.monotonic()
+        step, self._last_watch = min(now - self._last_watch, MAX_WATCH_STEP_S), now
         beat = float(self.heartbeat[0])
-        if beat == 0.0:  # still starting (importing torch, initialising CUDA)
-            if time.monotonic() - self._started > max(STARTUP_S, self.config.slam.backend_timeout_s):
-                self._fail(f"the mapping process did not start within {STARTUP_S:.0f} s")
+        if beat != self._last_beat:
+            self._last_beat, self._silent_s = beat, 0.0
             return
-        silent = time.monotonic() - beat
-        if silent > self.config.slam.backend_timeout_s:
-            self._fail(f"the mapping process has shown no sign of life for {silent:.0f} s (slam.backend_timeout_s)")
+        self._silent_s += step  # counted in this process's own running time only
+        timeout = self.config.slam.backend_timeout_s
+        if beat == 0.0:  # still starting (importing torch, initialising CUDA)
+            if self._silent_s > max(STARTUP_S, timeout):
+                self._fail(f"the mapping process did not start within {max(STARTUP_S, timeout):.0f} s")
+            return
+        if self._silent_s > timeout:
+            self._fail(
+                f"the mapping process has shown no sign of life for {self._silent_s:.0f} s (slam.backend_timeout_s)"
+            )
 
     def _fail(self, why: str) -> None:
         if not self.failure:

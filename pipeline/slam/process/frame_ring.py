@@ -15,10 +15,7 @@ from typing import Any
 import torch
 
 from pipeline.frame import DeviceFrame
-
-
-def _share(tensor: torch.Tensor) -> torch.Tensor:
-    return tensor if tensor.is_cuda else tensor.share_memory_()
+from pipeline.slam.process.shared_map import share
 
 
 @dataclass(frozen=True)
@@ -40,9 +37,7 @@ class RingBookkeeping:
 
     @staticmethod
     def create(count: int, context: Any) -> RingBookkeeping:
-        return RingBookkeeping(
-            torch.zeros(count, dtype=torch.int64).share_memory_(), context.Semaphore(count), context.Lock()
-        )
+        return RingBookkeeping(share(torch.zeros(count, dtype=torch.int64)), context.Semaphore(count), context.Lock())
 
 
 @dataclass(frozen=True)
@@ -57,10 +52,10 @@ class FrameRing:
     def allocate(books: RingBookkeeping, height: int, width: int, device: torch.device) -> FrameRing:
         def slot() -> FrameSlot:
             return FrameSlot(
-                _share(torch.zeros(height, width, 3, device=device)),
-                _share(torch.zeros(height, width, device=device)),
-                _share(torch.zeros(3, 3, device=device)),
-                _share(torch.zeros(4, 4, device=device)),
+                share(torch.zeros(height, width, 3, device=device)),
+                share(torch.zeros(height, width, device=device)),
+                share(torch.zeros(3, 3, device=device)),
+                share(torch.zeros(4, 4, device=device)),
             )
 
         return FrameRing(tuple(slot() for _ in range(int(books.busy.shape[0]))), books)

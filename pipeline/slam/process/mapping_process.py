@@ -5,12 +5,22 @@ It never idles while there is work: a frame waiting is mapped first (offline eac
 live the newest, the older ones passed over); while none waits, refinement passes over the
 stored keyframes improve the map, each ending as soon as a message arrives. Every mapped frame
 and every pass publishes a map version into the shared map.
+
+The parent owns shutdown: a terminal's Ctrl-C, `timeout` and a service manager signal the whole
+process group, so this process ignores SIGINT and SIGTERM (the parent stops the run, has mapping
+finish what it holds and says when to end); and it ends by itself the moment the parent ends,
+however the parent ends (a kill -9 too), rather than refine an orphaned map for ever.
 """
 
 from __future__ import annotations
 
 import importlib
+import multiprocessing
+import multiprocessing.connection
+import os
 import queue
+import signal
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -30,6 +40,8 @@ from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWrite
 from pipeline.slam.sides import backend_settings, loop_closer_for
 
 BEAT_S = 0.2  # an idle mapping process shows a sign of life this often
+PARENT_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # the group's stop signals, which the parent alone obeys
+EXIT_ORPHANED = 3  # the exit code of a mapping process whose parent ended first
 
 
 @dataclass(frozen=True)
@@ -46,10 +58,13 @@ class MappingSetup:
     outbox: Any  # mapping -> tracking
     live: bool
     threads: int  # torch's CPU threads in this process
+    stop_refining: Any  # a multiprocessing event: set, a final refinement ends at its next step
 
 
 def run_mapping_process(setup: MappingSetup) -> None:
     """The process's target: the loop until Shutdown; a failure is reported, then raised."""
+    _leave_signals_to_the_parent()
+    _end_with_the_parent()
     try:
         torch.set_num_threads(setup.threads)
         importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
@@ -57,6 +72,30 @@ def run_mapping_process(setup: MappingSetup) -> None:
     except BaseException as exc:
         setup.outbox.put(m.MappingFailed(f"{exc.__class__.__name__}: {exc}\n{traceback.format_exc()}"))
         raise
+
+
+def _leave_signals_to_the_parent() -> None:
+    """Ignore the group's stop signals. They are blocked from before this process started
+    (`client.signals_blocked`), so one sent during its start-up is discarded here, never
+    delivered as a KeyboardInterrupt halfway through an import."""
+    for sig in PARENT_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, PARENT_SIGNALS)
+
+
+def _end_with_the_parent() -> None:
+    """A thread that ends this process once its parent has ended: multiprocessing's sentinel of
+    the parent (a pipe whose other end only the parent holds) becomes readable then, whichever
+    thread started this process and however the parent ended."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os._exit(EXIT_ORPHANED)  # nothing to save here: the parent owns the run's files
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 class MappingLoop:
@@ -130,8 +169,8 @@ class MappingLoop:
             self.setup.outbox.put(m.Done())
         elif isinstance(message, m.Finish):
             self._map_waiting(everything=True)
-            views = len(self.backend.keyframes)
-            renders = self.backend.refine(message.final_renders, views=views) if message.final_renders else 0
+            views, stop = len(self.backend.keyframes), self.setup.stop_refining.is_set
+            renders = self.backend.refine(message.final_renders, stop, views) if message.final_renders else 0
             if renders:
                 self._publish()
             self.setup.outbox.put(m.Done(renders))
@@ -179,7 +218,8 @@ class MappingLoop:
         assert self.ring is not None
         slot = self.ring.take(handed.slot)
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
-        done = self.backend.map(TrackedFrame(frame, slot.c2w, handed.position), is_last=handed.is_last)
+        tracked = TrackedFrame(frame, slot.c2w, handed.position, keyframe=handed.keyframe)
+        done = self.backend.map(tracked, is_last=handed.is_last)
         self._publish()
         report = m.FrameMapped(handed.index, True, done.added, done.densify_s, done.mapping_s, done.closed)
         self.setup.outbox.put(report)

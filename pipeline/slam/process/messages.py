@@ -88,6 +88,7 @@ class MapFrame:
     position: int  # among the run's poses
     timestamp: float
     is_last: bool  # the last frame of a dataset: kept as a keyframe
+    keyframe: bool = False  # chosen as a keyframe by the tracking side (mapping.rate=keyframe)
 
 
 @dataclass(frozen=True)

@@ -6,25 +6,39 @@ map version, and its result is ready at once; the frame then goes to the mapping
 keyframes. Frame results therefore carry tracking's fields and the version tracked against;
 what mapping did with each frame comes back as `FrameMapped` reports (`mapping_summary`).
 
+At `mapping.rate=keyframe` only keyframes go to mapping: the tracking side chooses them by what
+each frame adds (`KeyframeChooser`), and the frames between are tracked only, each following
+its keyframe (the last one chosen before it), so that mapping's refinement of that keyframe
+moves them too. Offline, tracking then waits only to hand over a keyframe while mapping has not
+taken the `slam.max_lead` before it.
+
 The published state observers see (`SlamView`) is every frame tracked so far, the map version
 held for the last one and the keyframes' poses as mapping refined them.
+
+A mapping process that fails (dies, hangs, or is no longer waited for after a second signal)
+costs no tracked frame: a frame being tracked when it fails completes (not mapped), the next
+frame is refused before it is tracked (MappingProcessFailed), and a checkpoint then holds every
+frame tracked with the newest complete map version; `failure` says why and `unmapped` which
+frames the map lacks.
 """
 
 from __future__ import annotations
 
 import logging
 import random
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 import torch
 
 from pipeline.config import Config
+from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
 from pipeline.slam.gaussian_map import copied
-from pipeline.slam.handoff import FrameResult
-from pipeline.slam.keyframes import KeyframePose
+from pipeline.slam.handoff import FrameResult, TrackedFrame
+from pipeline.slam.keyframes import KeyframeChooser, KeyframePose
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping.backend import scene_radius_of
 from pipeline.slam.process.client import MappingProcess
@@ -34,6 +48,8 @@ from pipeline.slam.tracking.frontend import TrackingFrontend
 
 log = logging.getLogger("gsplatam")
 
+HOLD_AFTER_FAILURE_S = 1.0  # how long the newest version is waited for once the mapping process failed
+
 
 class ProcessSplaTAM:
     def __init__(self, config: Config, renderer: Renderer, device: torch.device, live: bool) -> None:
@@ -42,6 +58,7 @@ class ProcessSplaTAM:
         self.device = device
         self._tracker = tracker_for(config, renderer, device)
         self.frontend = TrackingFrontend(self._tracker, config.tracking, device)
+        self.chooser = self._new_chooser()
         self.mapping = MappingProcess(config, device, live)
         self._first_version = 1  # versions from before a warm-up's reset do not count
         self._saved: BackendState | None = None  # the last mapping state received (a checkpoint's)
@@ -72,41 +89,90 @@ class ProcessSplaTAM:
         held = self.held
         return () if held is None else held.keyframes
 
+    @property
+    def failure(self) -> str:
+        """Why the mapping process failed (empty while it works, and after a stop the user asked for)."""
+        return self.mapping.failure
+
+    def unmapped(self) -> list[int]:
+        """The frames handed to mapping that it never took (it ended first)."""
+        return self.mapping.unmapped()
+
+    def stop_waiting(self) -> None:
+        """Wait for the mapping process no more: what is complete is used (a second signal)."""
+        self.mapping.stop_waiting()
+
+    def _new_chooser(self) -> KeyframeChooser | None:
+        """The tracking side's keyframe choice at `mapping.rate=keyframe`; None: mapping takes every frame."""
+        return KeyframeChooser(self.config.keyframes) if self.config.mapping.rate == "keyframe" else None
+
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
-        identity), then hand it to the mapping process unless it is lost."""
+        identity), then hand it to the mapping process unless it is lost (at keyframe rate:
+        unless it is lost or no keyframe). The first frame's step ends once its map is
+        published, so the frame taken after that wait is the newest (live), as under the
+        sequential schedule. MappingProcessFailed before tracking, never after."""
         self.mapping.check()
         first = self.frontend.frames_done == 0
+        caught_up = self.mapping.caught_up()  # before the hold: the version held then holds every keyframe
         latest = None if first else self.mapping.hold_newest(self._first_version)
-        tracked, result = self.frontend.track(frame, latest)
+        anchor = None if self.chooser is None else self.chooser.last
+        tracked, result = self.frontend.track(frame, latest, anchor)
         if first:
             self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
-        result.mapped = not result.lost and self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last)
+        try:
+            result.mapped = not result.lost and self._hand_over(tracked, result, is_last, caught_up)
+            if first and result.mapped:
+                self.mapping.hold_newest(self._first_version)
+        except MappingProcessFailed:  # the frame is tracked and kept; the next one is refused
+            result.mapped = False
         result.map_version = 0 if latest is None else latest.number
         result.gaussians = 0 if latest is None else len(latest.gaussians)
         result.seconds.update(densify=0.0, mapping=0.0)
         result.seconds["total"] = result.seconds["tracking"]
         return result
 
+    def _hand_over(self, tracked: TrackedFrame, result: FrameResult, is_last: bool, caught_up: bool) -> bool:
+        """Hand a frame tracked well to mapping: every one at frame rate; at keyframe rate a
+        keyframe only (`KeyframeChooser`: the map's coverage counts only where the version
+        tracked against holds every keyframe, `caught_up`), the others marked as between
+        keyframes. -> whether mapping got it."""
+        frame, c2w, position = tracked.frame, tracked.c2w, tracked.position
+        if self.chooser is None:
+            return self.mapping.hand_over(frame, c2w, position, is_last)
+        why = self.chooser.reason(frame, c2w, position, result.coverage if caught_up else None, is_last)
+        result.between_keyframes = not why
+        if not why or not self.mapping.hand_over(frame, c2w, position, is_last, keyframe=True):
+            return False
+        log.debug("frame %d is a keyframe: %s", frame.index, why)
+        self.chooser.kept(KeyframePose(frame.index, c2w.clone(), position))
+        return True
+
     def warm_up(self, frame: DeviceFrame) -> None:
         """Map `frame` and track it against that map (compiling both processes' kernels), then
         start afresh on both sides. Only before the first frame."""
         if self.frontend.frames_done:
             raise RuntimeError("ProcessSplaTAM.warm_up runs before the first frame only")
-        for index in range(2):
-            self.step(replace(frame, index=index))
+        for index in range(2):  # the second is the last of these two: a keyframe at either rate
+            self.step(replace(frame, index=index), is_last=index == 1)
         self.mapping.start_afresh()  # after mapping the second frame too
         self._first_version = self.mapping.newest_version() + 1
         self.mapping.reader.release()
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
+        self.chooser = self._new_chooser()
 
     def checkpoint(self) -> Checkpoint:
         """Every frame tracked, with mapping's state as of now (a round trip to the mapping
-        process). If that process has failed, or has sent no state although a version is held:
-        the map version held last and the mapping state of the last checkpoint (or an empty
-        keyframe store), so that nothing tracked is lost."""
-        state = None if self.mapping.failure else self.mapping.state()[0]
+        process). If that process has failed (or fails meanwhile, or is no longer waited for),
+        or has sent no state although a version is held: the newest complete map version and
+        the mapping state of the last checkpoint (or an empty keyframe store), so that nothing
+        tracked is lost."""
+        try:
+            state = self.mapping.state()[0]
+        except MappingProcessFailed:
+            state = None
+            self.mapping.reader.hold(HOLD_AFTER_FAILURE_S)  # the newest version the process completed
         if state is not None:
             self._saved = state
         mapping = state or self._mapping_from_held()
@@ -135,12 +201,21 @@ class ProcessSplaTAM:
         self._scene_radius = saved.mapping.scene_radius
         self._intrinsics = saved.mapping.intrinsics
         self._first_version = self.mapping.newest_version()
-        self.frontend.trajectory.follow(self.mapping.hold_newest(self._first_version).keyframes)
+        keyframes = self.mapping.hold_newest(self._first_version).keyframes
+        self.frontend.trajectory.follow(keyframes)
+        if self.chooser is not None and keyframes:  # the next keyframe is measured against the newest restored
+            newest = max(keyframes, key=lambda k: k.position)
+            self.chooser.kept(replace(newest, c2w=newest.c2w.clone()))  # not a row of the version's stack
 
-    def finish(self, final_renders: int) -> int:
+    def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders
-        over every keyframe); hold the final version. -> the final renders done."""
-        renders = self.mapping.finish(final_renders)
+        over every keyframe, ending at its next step once `should_stop()`); hold the final
+        version. -> the final renders done (0 where the mapping process failed: `failure`)."""
+        try:
+            renders = self.mapping.finish(final_renders, should_stop)
+        except MappingProcessFailed as exc:
+            log.debug("no final mapping: %s", exc)
+            return 0
         newest = self.mapping.newest_version()
         if newest >= self._first_version:  # none after a warm-up when no frame followed it
             self.mapping.hold_newest(newest)
@@ -160,6 +235,7 @@ class ProcessSplaTAM:
             return 1000 * sum(values) / len(values) if values else None
 
         return {
+            "rate": self.config.mapping.rate,
             "frames_mapped": len(mapped),
             "frames_passed_over": len(reports) - len(mapped),
             "densify_ms": mean_ms([r.densify_s for r in mapped[2:]]),  # as timing_summary: frames 0 and 1 left out

@@ -13,17 +13,26 @@ after the copies: only then is it made the newest.
 
 A map that outgrows its generation's capacity asks the tracking side (by message) for a new,
 larger generation; the old one is dropped once the reader has moved on from it.
+
+On the CPU the slots (and the frame ring) live in POSIX shared memory, /dev/shm on Linux, which a
+container may keep small (Docker's default is 64 MiB; 64 KiB to 8 MiB are seen). The reader checks
+at start that the first generation fits, and an allocation that fails later (a map grown past
+what is left) is the same one line (`SharedMemoryShort`): how much is free, how much is needed,
+and what to do.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
+from pipeline.errors import UserError
 from pipeline.render.types import Gaussians
 from pipeline.slam.gaussian_map import PARAMETER_NAMES
 from pipeline.slam.keyframes import KeyframePose
@@ -38,11 +47,54 @@ FIRST_KEYFRAMES = 64
 NEWEST_GENERATION, NEWEST_SLOT, READING_GENERATION, READING_SLOT = 0, 1, 2, 3
 VERSION, COUNT, KEYFRAMES = 4, 4 + SLOTS, 4 + 2 * SLOTS
 CONTROL_FIELDS = 4 + 3 * SLOTS
+SHARED_MEMORY = Path("/dev/shm")  # where Linux keeps POSIX shared memory (torch's share_memory_ on the CPU)
+MIB = 1 << 20
 
 
-def _share(tensor: torch.Tensor) -> torch.Tensor:
-    """In shared memory on the CPU (CUDA memory is shared by IPC when sent)."""
-    return tensor if tensor.is_cuda else tensor.share_memory_()
+class SharedMemoryShort(UserError):
+    """The shared memory cannot hold what the process schedule shares."""
+
+
+def shared_memory_free() -> int | None:
+    """Bytes free in SHARED_MEMORY (None where there is no such file system to ask)."""
+    try:
+        info = os.statvfs(SHARED_MEMORY)
+    except OSError:
+        return None
+    return info.f_bavail * info.f_frsize
+
+
+def shared_memory_advice(needed: int | None = None, when: str = "more now") -> str:
+    """What to do about a shared memory too small, with what is free and (if known) how much is
+    `needed` (bytes) `when`."""
+    free = shared_memory_free()
+    has = "" if free is None else f", which has {free / MIB:.1f} MiB free"
+    wants = "" if needed is None else f"; it needs {needed / MIB:.1f} MiB {when}, and more as the map grows"
+    return (
+        f"slam.schedule=process shares its map and frames through {SHARED_MEMORY}{has}{wants}: enlarge it "
+        f"(docker run --shm-size=1g; or mount -o remount,size=1g {SHARED_MEMORY}) or run with "
+        "--set slam.schedule=sequential, which needs no shared memory"
+    )
+
+
+def share(tensor: torch.Tensor) -> torch.Tensor:
+    """`tensor` in shared memory on the CPU (CUDA memory is shared by IPC when sent);
+    SharedMemoryShort where the shared memory is full."""
+    if tensor.is_cuda:
+        return tensor
+    try:
+        return tensor.share_memory_()
+    except RuntimeError as exc:
+        if "shared memory" not in str(exc):
+            raise
+        raise SharedMemoryShort(shared_memory_advice(tensor.nbytes)) from None
+
+
+def check_shared_memory(needed: int) -> None:
+    """SharedMemoryShort, before anything is allocated, where `needed` bytes do not fit."""
+    free = shared_memory_free()
+    if free is not None and free < needed:
+        raise SharedMemoryShort(shared_memory_advice(needed, "to start"))
 
 
 @dataclass(frozen=True)
@@ -69,17 +121,25 @@ class MapGeneration:
         widths = {"means": (3,), "quats": (4,), "log_scales": (scale_axes,), "opacity_logits": (), "colors": (3,)}
 
         def slot() -> MapSlot:
-            tensors = {n: _share(torch.zeros(capacity, *widths[n], device=device)) for n in PARAMETER_NAMES}
+            tensors = {n: share(torch.zeros(capacity, *widths[n], device=device)) for n in PARAMETER_NAMES}
             return MapSlot(
                 Gaussians(**tensors),
-                _share(torch.zeros(keyframe_capacity, 4, 4, device=device)),
-                _share(torch.zeros(keyframe_capacity, 2, dtype=torch.int64)),
+                share(torch.zeros(keyframe_capacity, 4, 4, device=device)),
+                share(torch.zeros(keyframe_capacity, 2, dtype=torch.int64)),
             )
 
         return MapGeneration(number, capacity, keyframe_capacity, tuple(slot() for _ in range(SLOTS)))
 
     def fits(self, gaussians: int, keyframes: int) -> bool:
         return gaussians <= self.capacity and keyframes <= self.keyframe_capacity
+
+    @staticmethod
+    def host_bytes(capacity: int, keyframe_capacity: int, scale_axes: int, device: torch.device) -> int:
+        """The shared host memory a generation takes (on CUDA only the keyframes' indices)."""
+        per_slot = 8 * 2 * keyframe_capacity
+        if device.type != "cuda":
+            per_slot += 4 * (capacity * (3 + 4 + scale_axes + 1 + 3) + keyframe_capacity * 16)
+        return SLOTS * per_slot
 
 
 @dataclass(frozen=True)
@@ -91,7 +151,7 @@ class MapControl:
 
     @staticmethod
     def create(context: Any) -> MapControl:
-        fields = torch.full((CONTROL_FIELDS,), -1, dtype=torch.int64).share_memory_()
+        fields = share(torch.full((CONTROL_FIELDS,), -1, dtype=torch.int64))
         return MapControl(fields, context.Lock())
 
 
@@ -155,6 +215,7 @@ class MapReader:
         self._generations: dict[int, MapGeneration] = {}
         self._allocating = threading.Lock()  # the listener thread grows while tracking reads
         self.held: MapVersion | None = None
+        check_shared_memory(MapGeneration.host_bytes(FIRST_CAPACITY, FIRST_KEYFRAMES, scale_axes, device))
         self.first = self.grow(FIRST_CAPACITY, FIRST_KEYFRAMES)
 
     def grow(self, capacity: int, keyframe_capacity: int) -> MapGeneration:
@@ -165,15 +226,21 @@ class MapReader:
             self._generations[number] = generation
         return generation
 
-    def hold(self) -> MapVersion | None:
-        """The newest complete version, held until the next call (None before the first)."""
-        fields = self.control.fields
-        with self.control.lock:
+    def hold(self, wait_s: float | None = None) -> MapVersion | None:
+        """The newest complete version, held until the next call (None before the first). With
+        `wait_s`, the control block's lock is waited for that long at most (a writer killed
+        while holding it never lets go): the version held before is kept then."""
+        fields, lock = self.control.fields, self.control.lock
+        if not lock.acquire(timeout=wait_s):
+            return self.held
+        try:
             generation, index = int(fields[NEWEST_GENERATION]), int(fields[NEWEST_SLOT])
             if generation < 0:
                 return None
             fields[READING_GENERATION], fields[READING_SLOT] = generation, index
             number, count, kept = (int(fields[f + index]) for f in (VERSION, COUNT, KEYFRAMES))
+        finally:
+            lock.release()
         with self._allocating:
             slot = self._generations[generation].slots[index]
             for older in [g for g in self._generations if g < generation]:

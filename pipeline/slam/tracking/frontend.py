@@ -111,10 +111,13 @@ class TrackingFrontend:
         self.loss_history = list(saved.loss_history)
         self._last_c2w, self._large_step = None, False  # the step into the first frame after it is unknown
 
-    def track(self, frame: DeviceFrame, latest: MapVersion | None) -> TrackingOutcome:
+    def track(
+        self, frame: DeviceFrame, latest: MapVersion | None, anchor: KeyframePose | None = None
+    ) -> TrackingOutcome:
         """Frame t against the latest map version (None: the first frame, where the map starts:
         its pose is the identity). Reads the frame's tracking scalars once per tracker run, to
-        judge it; a lost frame is relocalised (`_relocalise`)."""
+        judge it; a lost frame is relocalised (`_relocalise`). The frame's pose follows `anchor`
+        (None: the newest keyframe of `latest`)."""
         started = time.perf_counter()
         with self.clock.stage("tracking"):
             if latest is None:
@@ -127,7 +130,7 @@ class TrackingFrontend:
                 attempt = self._attempt(gaussians, frame, guess, large_step=self._large_step)
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
-            self._record(frame, attempt, self._anchor(latest), first=latest is None)
+            self._record(frame, attempt, anchor or self._anchor(latest), first=latest is None)
         ready = None
         if frame.depth.is_cuda:
             ready = torch.cuda.Event()

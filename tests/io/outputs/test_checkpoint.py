@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import make_checkpoint, tamper_checkpoint
+from conftest import checkpoint_with_loops, make_checkpoint, tamper_checkpoint
 
 from pipeline.app.cli import main
 from pipeline.config import load_config, to_toml, with_value
@@ -142,34 +142,8 @@ def test_anisotropic_scales_are_refused_for_an_isotropic_run(tmp_path: Path) -> 
     assert read_checkpoint(tmp_path / "c.safetensors")[0].gaussians.log_scales.shape == (10, 3)
 
 
-def _with_loops(gaussians: int) -> Checkpoint:
-    from dataclasses import replace as replaced
-
-    from pipeline.slam.loops.detection import ClosedLoop, LoopTally
-    from pipeline.slam.loops.pose_graph import Edge, MotionSize
-    from pipeline.slam.state import LoopState
-
-    n = gaussians
-    means = torch.randn(n, 3, generator=torch.Generator().manual_seed(0))
-    map_ = Gaussians(means, torch.ones(n, 4), torch.zeros(n, 3), torch.zeros(n), torch.rand(n, 3))
-    checkpoint = make_checkpoint(map_, [], torch.eye(4).repeat(12, 1, 1))
-    f64 = torch.float64
-    loops = LoopState(
-        creator=torch.arange(n) % 3 - 1,  # nodes 0 and 1, and none (-1)
-        node_c2w=torch.eye(4, dtype=f64).repeat(3, 1, 1),
-        node_positions=[0, 5, 11],
-        odometry_information=torch.eye(6, dtype=f64).repeat(3, 1, 1),
-        loops=[Edge(0, 2, torch.eye(4, dtype=f64), 2 * torch.eye(6, dtype=f64), loop=True)],
-        tally=LoopTally(detected=4, verified=3, accepted=1, rejected=3, searches=3, search_s=0.25),
-        closed=[ClosedLoop(11, (0,), MotionSize(0.02, 1.0), 0.1, 0.05, 0.2)],
-    )
-    mapping = replaced(checkpoint.mapping, loops=loops, intrinsics=torch.eye(3))
-    tracking = replaced(checkpoint.tracking, tracked_poses=torch.eye(4).repeat(12, 1, 1) * 2)
-    return Checkpoint(tracking, mapping)
-
-
 def test_loop_closures_state_and_the_poses_as_tracked_round_trip(tmp_path: Path) -> None:
-    checkpoint = _with_loops(9)
+    checkpoint = checkpoint_with_loops(9)
     write_checkpoint(tmp_path / "c.safetensors", checkpoint, RunDescription("room"))
     read, _ = read_checkpoint(tmp_path / "c.safetensors")
     loops, saved = read.mapping.loops, checkpoint.mapping.loops
@@ -185,7 +159,7 @@ def test_loop_closures_state_and_the_poses_as_tracked_round_trip(tmp_path: Path)
 @pytest.mark.parametrize("change", ["int32", "one row fewer"])
 def test_a_tampered_creator_is_refused(tmp_path: Path, change: str) -> None:
     path = tmp_path / "c.safetensors"
-    write_checkpoint(path, _with_loops(9), RunDescription("room"))
+    write_checkpoint(path, checkpoint_with_loops(9), RunDescription("room"))
     tamper_checkpoint(path, "loops.creator", change)
     with pytest.raises(DataError, match="loops.creator"):
         read_checkpoint(path)

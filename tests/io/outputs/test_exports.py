@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import GT_ROOM as ROOM
-from conftest import write_gt_run
+from conftest import needs_extra, write_gt_run
 
 from pipeline.app.cli import main
 from pipeline.app.export import export_run
@@ -143,7 +143,7 @@ def test_tsdf_fusion_of_exact_views_lies_on_the_rooms_surfaces(gt_run: Path) -> 
     depth conventions all enter this). A 64x48 pixel spans 5-10 cm at these depths and the
     projective TSDF steps by pixels, so at 2 cm voxels the mesh lies 2.2 cm from the true
     surfaces on average and covers what was seen to 4.7 cm (measured); bounds: 3 and 6 cm."""
-    pytest.importorskip("open3d", reason="the mesh export needs open3d (pip install -e '.[mesh]')")
+    needs_extra("open3d")
     from pipeline.io.outputs.exports.mesh import RGBDView, fuse_tsdf
 
     checkpoint, camera = _checkpoint(gt_run), RunFolder(gt_run).read_intrinsics()
@@ -160,7 +160,7 @@ def test_mesh_export_fuses_the_maps_rendered_depth_onto_the_room(gt_run: Path, t
     lies ~15 cm short on slanted surfaces, where front-to-back blending of pixel-sized
     Gaussians favours the nearer neighbours, so the bound is 20 cm each way: what it checks is
     a mesh where the room is (not mirrored, shifted or scaled: those give metres)."""
-    pytest.importorskip("open3d", reason="the mesh export needs open3d (pip install -e '.[mesh]')")
+    needs_extra("open3d")
     path = tmp_path / "mesh.ply"
     assert main(["export", str(gt_run), "--to", "mesh", "--output", str(path), "--voxel", "0.03"]) == 0
     mesh = plyfile.PlyData.read(str(path))

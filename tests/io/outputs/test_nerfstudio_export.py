@@ -12,10 +12,13 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+import torch
 from conftest import GT_KEYFRAMES, GT_ROOM, write_gt_run
 
 from pipeline.app.cli import main
 from pipeline.config import load_config
+from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.io.outputs.intrinsics import write_intrinsics
 from pipeline.io.outputs.run_folder import RunFolder
 
 WORKING = (32, 24)  # the run's working size; the room is stored at 64x48
@@ -23,12 +26,28 @@ WORKING = (32, 24)  # the run's working size; the room is stored at 64x48
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A run of the room whose working size is half its stored size (and keyframes at 64x48,
-    as the gt run holds them: the keyframe export at the working size reads them as they are)."""
+    """A run of the room whose working size is half its stored size, as such a run leaves it:
+    keyframes and intrinsics.json at the working size."""
     run = write_gt_run(tmp_path_factory.mktemp("ns"))
     folder = RunFolder(run)
     config = folder.read_config()
     folder.write_config(replace(config, dataset=replace(config.dataset, width=WORKING[0], height=WORKING[1])))
+    checkpoint, description = folder.read_checkpoint()
+    keyframes = [
+        replace(
+            k,
+            color_u8=torch.from_numpy(cv2.resize(k.color_u8.numpy(), WORKING, interpolation=cv2.INTER_AREA)),
+            depth=torch.from_numpy(cv2.resize(k.depth.numpy(), WORKING, interpolation=cv2.INTER_NEAREST)),
+        )
+        for k in checkpoint.keyframes
+    ]
+    halved = replace(checkpoint, mapping=replace(checkpoint.mapping, keyframes=keyframes))
+    folder.write_state(halved, description, read_tum_trajectory(folder.trajectory)[0], None)
+    camera = folder.read_intrinsics()
+    write_intrinsics(
+        folder.intrinsics, replace(camera, fx=camera.fx / 2, fy=camera.fy / 2, cx=camera.cx / 2, cy=camera.cy / 2,
+                                   width=WORKING[0], height=WORKING[1]),
+    )  # fmt: skip
     return run
 
 

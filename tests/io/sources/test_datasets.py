@@ -10,6 +10,7 @@ from conftest import SMALL_SYNTH
 
 from pipeline.config import DatasetConfig
 from pipeline.errors import DataError, UserError
+from pipeline.io.sources.datasets.depth_scale import check_depth_scale
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic import sequence
 from pipeline.io.sources.datasets.tum import associate
@@ -90,12 +91,98 @@ def test_unknown_layout(tmp_path: Path) -> None:
         open_dataset(DatasetConfig(path=str(tmp_path)))
 
 
-def test_missing_image_names_the_file(replica_seq: Path, tmp_path: Path) -> None:
+def test_missing_image_names_the_file_when_the_dataset_is_opened(replica_seq: Path, tmp_path: Path) -> None:
     path = copy_of(replica_seq, tmp_path)
     (path / "results" / "depth000002.png").unlink()
-    dataset = open_dataset(DatasetConfig(path=str(path)))
-    with pytest.raises(DataError, match="missing image: .*depth000002.png"):
-        dataset.decode(dataset.refs[2])
+    with pytest.raises(DataError, match="the depth image of frame 2 is missing: .*depth000002.png"):
+        open_dataset(DatasetConfig(path=str(path)))
+    assert len(open_dataset(DatasetConfig(path=str(path), end=2))) == 2  # only the frames used are checked
+
+
+def test_a_missing_replica_colour_frame_is_named_not_counted(replica_seq: Path, tmp_path: Path) -> None:
+    path = copy_of(replica_seq, tmp_path)
+    (path / "results" / "frame000003.jpg").unlink()
+    with pytest.raises(DataError, match="the colour image of frame 3 is missing: .*frame000003.jpg"):
+        open_dataset(DatasetConfig(path=str(path)))
+
+
+def test_a_tum_listing_naming_a_missing_file_is_refused_at_open(tum_seq: Path, tmp_path: Path) -> None:
+    path = copy_of(tum_seq, tmp_path)
+    listed = (path / "depth.txt").read_text().split()[-1]  # the last frame's depth image
+    (path / listed).unlink()
+    with pytest.raises(DataError, match=f"the depth image of frame 5 is missing: {path / listed}"):
+        open_dataset(DatasetConfig(path=str(path)))
+
+
+def _in_millimetres(tum: Path, tmp_path: Path) -> Path:
+    """A copy of the TUM sequence `tum` with its depth in millimetres (as a RealSense writes it)."""
+    path = copy_of(tum, tmp_path)
+    for image in (path / "depth").glob("*.png"):
+        raw = cv2.imread(str(image), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        cv2.imwrite(str(image), np.rint(raw / 5000.0 * 1000.0).astype(np.uint16))
+    return path
+
+
+def test_dataset_depth_scale_reads_millimetre_depth(tum_seq: Path, tmp_path: Path) -> None:
+    path = _in_millimetres(tum_seq, tmp_path)
+    truth = list(open_dataset(DatasetConfig(path=str(tum_seq))).frames())
+    as_mm = list(open_dataset(DatasetConfig(path=str(path), depth_scale=1000.0)).frames())
+    at_tums = list(open_dataset(DatasetConfig(path=str(path))).frames())  # the layout's 5000: a fifth of the depth
+    for mm, tums, expected in zip(as_mm, at_tums, truth):
+        assert np.abs(mm.depth - expected.depth).max() <= 0.0005 + 1e-6  # a millimetre's rounding
+        np.testing.assert_allclose(tums.depth * 5, mm.depth, rtol=1e-6)
+
+
+def test_millimetre_depth_at_tums_scale_is_named_with_the_setting_that_fixes_it(
+    tum_seq: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = _in_millimetres(tum_seq, tmp_path)
+    config = DatasetConfig(path=str(path))
+    with caplog.at_level("INFO", "gsplatam"):
+        check_depth_scale(open_dataset(config), config)
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "median of 0.49 m at dataset.depth_scale=5000 (tum's default)" in warning
+    assert "millimetres" in warning and "--set dataset.depth_scale=1000 (the median is then 2.45 m)" in warning
+    caplog.clear()
+    with caplog.at_level("DEBUG", "gsplatam"):
+        right = DatasetConfig(path=str(path), depth_scale=1000.0)
+        check_depth_scale(open_dataset(right), right)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert "median of 2.45 m at dataset.depth_scale=1000 (set)" in caplog.text
+
+
+def test_depth_far_outside_what_a_camera_sees_stops_the_run_before_slam(
+    tum_seq: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.app.cli import main
+
+    path = copy_of(tum_seq, tmp_path)
+    for image in (path / "depth").glob("*.png"):  # depth in centimetres: 500 cm read as 0.1 m
+        raw = cv2.imread(str(image), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        cv2.imwrite(str(image), np.rint(raw / 5000.0 * 100.0).astype(np.uint16))
+    out = tmp_path / "out"
+    assert main(["run", str(path), "--output", str(out), "--quiet"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert (
+        "a median of 0.049 m at dataset.depth_scale=5000" in line
+        and "outside dataset.depth_range_m (0.1 to 20 m)" in line
+    )
+    assert not any(out.iterdir())  # no run folder: stopped before SLAM
+    config = DatasetConfig(path=str(path), depth_range_m=())
+    check_depth_scale(open_dataset(config), config)  # the check can be turned off
+
+
+def test_a_moved_run_folder_finds_its_dataset_by_the_path_as_given(tum_seq: Path, tmp_path: Path, monkeypatch) -> None:
+    from pipeline.config import load_config, with_absolute_dataset_path
+
+    monkeypatch.chdir(tum_seq.parent)
+    config = with_absolute_dataset_path(load_config("tiny", overrides=[f"dataset.path={tum_seq.name}"]))
+    assert config.dataset.path == str(tum_seq) and config.dataset.path_as_given == tum_seq.name
+    moved = DatasetConfig(path=str(tmp_path / "gone"), path_as_given=tum_seq.name)
+    assert len(open_dataset(moved)) == SMALL_SYNTH.frames  # relative to here, where the absolute path is gone
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match=f"dataset folder not found: {tmp_path / 'gone'} \\(given as {tum_seq.name}\\)"):
+        open_dataset(moved)
 
 
 def test_unreadable_image(replica_seq: Path, tmp_path: Path) -> None:

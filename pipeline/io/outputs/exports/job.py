@@ -29,6 +29,10 @@ class RunRecords(Protocol):
         """The camera at SLAM's working size (intrinsics.json)."""
         ...
 
+    def frame_timestamps(self) -> dict[int, float]:
+        """Frame index -> its timestamp, seconds (frames.csv): what the run read of its dataset."""
+        ...
+
 
 @dataclass(frozen=True)
 class NerfstudioOptions:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -30,12 +30,14 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import Config
+from pipeline.errors import DataError
 from pipeline.io.files.atomic import atomic_write_bytes, atomic_write_text
 from pipeline.io.files.folders import atomic_folder
 from pipeline.io.files.images import encode_color, encode_depth_png
 from pipeline.io.outputs.exports.job import ExportJob, Frames, Size
 from pipeline.io.outputs.exports.pointcloud import write_pointcloud
 from pipeline.io.outputs.intrinsics import CameraIntrinsics
+from pipeline.io.sources.datasets.base import Dataset
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe
@@ -45,6 +47,7 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # right-multiplied: flips th
 DEPTH_UNITS_PER_METRE = 1000.0  # millimetres; nerfstudio's depth_unit_scale_factor is the inverse, 1e-3
 POINTS_FILE = "sparse_pc.ply"
 EVAL_EVERY = 8  # every 8th image held out for evaluation (nerfstudio's own eval_interval)
+TIMESTAMP_TOLERANCE_S = 2e-6  # frames.csv keeps 6 decimals of a second
 WRITTEN = ("images/frame_*.png", "depth/frame_*.png", "transforms.json", POINTS_FILE)  # in its folder
 
 DEFAULT_NAME = "nerfstudio"  # a folder: transforms.json, images/, depth/, sparse_pc.ply
@@ -100,21 +103,64 @@ class View:
 
 
 def views_of(
-    checkpoint: Checkpoint, config: Config, camera: CameraIntrinsics, frames: Frames, size: Size
+    checkpoint: Checkpoint,
+    config: Config,
+    camera: CameraIntrinsics,
+    frames: Frames,
+    size: Size,
+    timestamps: Mapping[int, float],
 ) -> tuple[Iterator[View], CameraIntrinsics]:
     """The images `frames` and `size` ask for, and their camera. Keyframes at the working size
-    come from the checkpoint; the rest are decoded again from the run's dataset."""
+    come from the checkpoint; the rest are decoded again from the run's dataset, once it is
+    known to be the one the run read (`timestamps`: frame index -> seconds, from frames.csv)."""
     if frames == "keyframes" and size == "working":
         return (_keyframe_view(k) for k in checkpoint.keyframes), camera
     chosen = [k.index for k in checkpoint.keyframes] if frames == "keyframes" else _tracked(checkpoint)
     dataset = open_dataset(config.dataset if size == "working" else replace(config.dataset, width=0, height=0))
+    _check_frames(dataset, chosen, timestamps)
     refs = [dataset.refs[i] for i in chosen]
     first = dataset.decode(refs[0])
     height, width = first.depth.shape
+    _check_camera(dataset, first.intrinsics, (width, height), camera, size)
     poses = checkpoint.poses.double().numpy()
     decoded = itertools.chain([first], (dataset.decode(ref) for ref in refs[1:]))  # the first, decoded once
     views = (View(f.index, f.color, f.depth.astype(np.float32), poses[f.index]) for f in decoded)
     return views, CameraIntrinsics.of_matrix(first.intrinsics, width, height)
+
+
+def _check_frames(dataset: Dataset, chosen: list[int], timestamps: Mapping[int, float]) -> None:
+    """DataError naming the first frame of `chosen` that the dataset no longer holds as the run
+    read it: missing, or of another timestamp than frames.csv gives it (frames removed from or
+    added to its lists pair other images with the run's poses)."""
+    where = f"the dataset {dataset.refs[0].color_path.parent if dataset.refs else ''}"
+    for index in chosen:
+        if index >= len(dataset.refs):
+            raise DataError(
+                f"{where} now has {len(dataset.refs)} frames (as the run sliced it), the run had frame {index}"
+            )
+        recorded, now = timestamps.get(index), dataset.refs[index].timestamp
+        if recorded is not None and abs(recorded - now) > TIMESTAMP_TOLERANCE_S:
+            raise DataError(
+                f"frame {index} of {where} is at {now:.6f} s, the run's frames.csv has it at {recorded:.6f} s: "
+                "the dataset changed since the run, its images would be paired with other frames' poses"
+            )
+
+
+def _check_camera(
+    dataset: Dataset, intrinsics: np.ndarray, size: tuple[int, int], camera: CameraIntrinsics, asked: Size
+) -> None:
+    """DataError where the dataset's first frame (`intrinsics` [3, 3] at `size` (width, height)),
+    brought to the run's working size, is not the run's camera: its images were replaced by
+    others of another size."""
+    sx, sy = camera.width / size[0], camera.height / size[1]
+    scaled = np.array([intrinsics[0, 0] * sx, intrinsics[1, 1] * sy, intrinsics[0, 2] * sx, intrinsics[1, 2] * sy])
+    working = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    if (asked == "working" and size != (camera.width, camera.height)) or not np.allclose(scaled, working, rtol=1e-4):
+        raise DataError(
+            f"the frames of {dataset.refs[0].color_path.parent} are now {size[0]}x{size[1]} with intrinsics "
+            f"fx={intrinsics[0, 0]:g} fy={intrinsics[1, 1]:g}, which is not the run's camera "
+            f"({camera.width}x{camera.height}, fx={camera.fx:g}): the dataset changed since the run"
+        )
 
 
 def _keyframe_view(keyframe: Keyframe) -> View:
@@ -146,8 +192,8 @@ def write_nerfstudio(folder: Path, views: Iterable[View], camera: CameraIntrinsi
 
 def export(job: ExportJob) -> str:
     """The dataset, written into a temporary folder beside `job.target` and renamed into it."""
-    options, working = job.nerfstudio, job.run.read_intrinsics()
-    views, camera = views_of(job.checkpoint, job.run.read_config(), working, options.frames, options.size)
+    options, working, stamps = job.nerfstudio, job.run.read_intrinsics(), job.run.frame_timestamps()
+    views, camera = views_of(job.checkpoint, job.run.read_config(), working, options.frames, options.size, stamps)
     counts: list[int] = []
     atomic_folder(
         job.target, lambda staged: counts.append(write_nerfstudio(staged, views, camera, job.checkpoint.gaussians))

@@ -6,6 +6,7 @@ them in worker threads.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -114,6 +115,21 @@ def slice_refs(refs: list[FrameRef], config: DatasetConfig) -> list[FrameRef]:
     if len(known) == len(poses):
         poses = list(relative_poses(np.stack(known)))
     return [FrameRef(i, r.timestamp, r.color_path, r.depth_path, pose) for i, (r, pose) in enumerate(zip(kept, poses))]
+
+
+def check_listing(refs: list[FrameRef]) -> None:
+    """Before any frame is decoded: DataError naming the first colour or depth image the
+    listing names (rgb.txt, depth.txt, results/) that is missing or cannot be read."""
+    for ref in refs:
+        for kind, path in (("colour", ref.color_path), ("depth", ref.depth_path)):
+            try:
+                found = path.is_file()
+            except OSError as exc:  # a folder on the way that cannot be searched
+                raise DataError(f"cannot read the folder {path.parent} (for {path.name}): {exc.strerror}") from None
+            if not found:
+                raise DataError(f"the {kind} image of frame {ref.index} is missing: {path}")
+            if not os.access(path, os.R_OK):
+                raise DataError(f"cannot read the {kind} image of frame {ref.index}: {path}: permission denied")
 
 
 def first_frame_size(refs: list[FrameRef]) -> tuple[int, int]:

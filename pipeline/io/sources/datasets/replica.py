@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.config import DATASET_DEFAULTS
 from pipeline.errors import DataError
 from pipeline.io.files.images import write_color, write_depth_png
 from pipeline.io.files.trajectory import read_numeric_table
@@ -20,7 +21,7 @@ from pipeline.io.sources.datasets.base import (
     write_intrinsics_file,
 )
 
-DEPTH_SCALE = 6553.5  # uint16 units per metre
+DEPTH_SCALE = DATASET_DEFAULTS["replica"]["dataset.depth_scale"]  # uint16 units per metre (6553.5: 10 m at 65535)
 NATIVE_INTRINSICS = intrinsics_matrix(600.0, 600.0, 599.5, 339.5)  # at 1200x680
 FPS = 30.0  # Replica has no timestamps; frame i is stamped i / FPS
 
@@ -31,7 +32,7 @@ def open_replica(path: Path, intrinsics: np.ndarray | None = None) -> Dataset:
         raise DataError(f"{path / 'traj.txt'} holds no poses")
     results = path / "results"
     colors = sorted(results.glob("frame*.jpg"))
-    if len(colors) != len(table):
+    if len(colors) > len(table):
         raise DataError(f"{path / 'traj.txt'} has {len(table)} poses but {results} holds {len(colors)} colour frames")
     poses = relative_poses(table.reshape(-1, 4, 4))
     refs = [

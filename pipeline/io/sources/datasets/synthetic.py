@@ -15,6 +15,8 @@ import numpy as np
 import torch
 
 from pipeline.config import SYNTHETIC_CPU, SYNTHETIC_GPU, SyntheticConfig
+from pipeline.config.loading import MAX_SYNTHETIC_FRAMES
+from pipeline.errors import UserError
 
 ROOM_HALF = (3.0, 2.5)  # room half-extent in x and y
 ROOM_HEIGHT = 2.6
@@ -425,4 +427,9 @@ def synthetic_for(config: SyntheticConfig, device: torch.device) -> SyntheticCon
     width, height, frames = SYNTHETIC_GPU if device.type == "cuda" else SYNTHETIC_CPU
     if path_turns(config):
         frames = closed_path_frames(config)
+        if frames > MAX_SYNTHETIC_FRAMES:
+            raise UserError(
+                f"synthetic.loops={config.loops} at synthetic.speed={config.speed:g} and synthetic.fps={config.fps:g} "
+                f"makes {frames:,} frames (at most {MAX_SYNTHETIC_FRAMES:,}): fewer loops, or a faster speed"
+            )
     return replace(config, frames=config.frames or frames, width=config.width or width, height=config.height or height)

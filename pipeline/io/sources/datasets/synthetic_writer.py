@@ -93,7 +93,7 @@ def cached_synthetic(root: Path, config: SyntheticConfig, progress: bool = True,
     if _matches(path, config):
         return path
     root.mkdir(parents=True, exist_ok=True)
-    partial = temporary_folder(root, f".{key}.")
+    partial = temporary_folder(root, key)
     try:
         write_synthetic(partial, config, progress, device)
         if path.exists() and not _matches(path, config):

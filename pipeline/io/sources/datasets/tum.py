@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.config import DATASET_DEFAULTS
 from pipeline.errors import DataError, UserError
 from pipeline.io.files.images import write_color, write_depth_png
 from pipeline.io.files.trajectory import matrix_to_quat_xyzw, pose_from_tum_row, read_tum_poses
@@ -26,7 +27,7 @@ from pipeline.io.sources.datasets.base import (
 
 log = logging.getLogger("gsplatam")
 
-DEPTH_SCALE = 5000.0  # uint16 units per metre
+DEPTH_SCALE = DATASET_DEFAULTS["tum"]["dataset.depth_scale"]  # uint16 units per metre (5000: the Kinect's 0.2 mm)
 MAX_DT = 0.08  # seconds between associated colour, depth and pose
 CAMERAS = {
     "fr1": intrinsics_matrix(517.3, 516.5, 318.6, 255.3),
