@@ -115,8 +115,10 @@ def test_keyframe_rate_maps_keyframes_only_never_a_lost_frame_and_keeps_a_pose_p
     slam, frames = _wall_in_a_run(replica_seq)
     track = slam.frontend.tracker
 
-    def losing_frame_2(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor) -> TrackResult:
-        result = track(gaussians, frame, c2w_init)
+    def losing_frame_2(
+        gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
+    ) -> TrackResult:
+        result = track(gaussians, frame, c2w_init, large_step)
         return replace(result, failure="made to fail") if frame.index == 2 else result
 
     slam.frontend.tracker = losing_frame_2
