@@ -42,6 +42,9 @@ for part in "$@"; do
                cp -r .device/cache/gsplatam/extensions "$out/" ;;  # to carry into later calls
     gpu-tests) python3 -m pytest tests/gpu -o addopts="" -p no:cacheprovider -q -rs 2>&1 | tee "$out/gpu_tests.txt" | tail -n 30 ;;
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
+    pace-tum) bench "$tum" --presets tiny --variants sequential,process-frame,process-keyframe --stem pace_tiny_tum ;;
+    drift-cabinet) bench "$cabinet" --presets tiny --variants process-one-render,process,process-adjust \
+                     --set dataset.width=640 --set dataset.height=480 --stem drift_cabinet_tiny ;;
     graph) for g in on off; do  # graphed mapping passes against eager ones, side by side in one call
              bench "$tum" synthetic-tum --presets tiny --variants sequential,process --set synthetic.frames=100 \
                --set mapping.graph=$g --stem graph_$g
