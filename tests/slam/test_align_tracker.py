@@ -106,6 +106,25 @@ def test_align_recovers_known_motions_that_adam_cannot(translation_m: float, ang
     assert millimetres > 2.0 or degrees > 0.2
 
 
+def test_a_recorded_tracker_prepares_every_schedule_on_its_first_frame() -> None:
+    """Where solves are recorded (CUDA), the first frame also makes the wide and the recovery
+    solves, so that a later frame never waits for their compile; the pose is the same."""
+    settings = tiny_settings(exact_renderer, "align")
+    near, far = settings.near, settings.far
+    plain = AlignTracker(exact_renderer, settings.config, near, far)
+    warming = AlignTracker(exact_renderer, settings.config, near, far)
+    warming._warmed = False  # as a recording (capture=True) tracker starts; the CPU cannot record
+    truth = START @ motion(0.02, 1.0, 3)
+    frame = frame_of(*ray_cast(truth))
+    c2w_init = torch.from_numpy(START).float()
+    first = warming(Gaussians(*[torch.zeros(0)] * 5), frame, c2w_init)
+    assert len(warming._solvers) == 3 and len(plain._solvers) == 0
+    assert torch.equal(first.c2w, plain(Gaussians(*[torch.zeros(0)] * 5), frame, c2w_init).c2w)
+    assert len(plain._solvers) == 1
+    warming(Gaussians(*[torch.zeros(0)] * 5), frame, c2w_init)
+    assert len(warming._solvers) == 3  # made once
+
+
 def test_a_failed_first_attempt_is_recovered_with_more_coarse_iterations() -> None:
     """One iteration per level cannot follow 10 cm and 10 degrees: the solve says so itself, and
     the recovery attempt (30 coarse-level iterations) brings the pose back."""

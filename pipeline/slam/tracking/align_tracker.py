@@ -200,6 +200,7 @@ class AlignTracker:
         self.capture = capture
         self.params = level_params(config, len(config.align_iters))
         self._solvers: dict[tuple[int, ...], Callable[..., tuple[LmState, torch.Tensor]]] = {}
+        self._warmed = not capture  # eager solves need no warm-up
 
     def __call__(
         self, gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, wide: bool = False
@@ -230,11 +231,14 @@ class AlignTracker:
         `wide_schedule` with `align_recovery_iters` at its coarsest level (a wider basin)."""
         rendered = self._render(gaussians, frame, c2w_render)
         images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
+        recovery = (self.config.align_recovery_iters, *wide_schedule[1:])
+        if not self._warmed:
+            self._warm_up(images, (wide_schedule, recovery))
         state, valid = self._solver(schedule)(*images)
         report = read_report(state, valid)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
-            retry, _ = self._solver((self.config.align_recovery_iters, *wide_schedule[1:]))(*images)
+            retry, _ = self._solver(recovery)(*images)
             retry_report = read_report(retry, valid)
             retry_failure = retry_report.failure(self.config)
             if retry_failure:
@@ -242,6 +246,14 @@ class AlignTracker:
             else:
                 state, report, failure = retry, retry_report, ""
         return Pass(state, report, valid, c2w_render, failure)
+
+    def _warm_up(self, images: tuple[torch.Tensor, ...], schedules: tuple[tuple[int, ...], ...]) -> None:
+        """On the first frame, compile and record the solves that later frames may need (the
+        wide and the recovery schedules: a pyramid level more), so that a frame mid-run never
+        waits seconds for a compile; their results are dropped."""
+        self._warmed = True
+        for schedule in schedules:
+            self._solver(schedule)(*images)
 
     def _solver(self, schedule: tuple[int, ...]) -> Callable[..., tuple[LmState, torch.Tensor]]:
         """`solve_images` over `schedule`, made (and with `capture`, graph-recorded) once per schedule."""
