@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command
+from pipeline.extras import EXTRA_OF_MODULE, install_command, pip_command, unavailable_extra
 from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.outputs.run_metrics import LoopRecord, RunMetrics, TimingRecord
@@ -194,10 +194,14 @@ def _installed(module: str) -> bool:
 
 
 def _needing(module: str | None, command: str) -> str:
-    """`command`, after the pip command of the extra that brings `module` when it is missing."""
-    if module is None or _installed(module):
+    """`command`, after the pip command of the extra that brings `module` when it is missing;
+    where `module` is installed but cannot load (a system library missing), what it lacks."""
+    if module is None:
         return command
-    return f"{install_command(EXTRA_OF_MODULE[module])} && {command}"
+    if not _installed(module):
+        return f"{install_command(EXTRA_OF_MODULE[module])} && {command}"
+    broken = unavailable_extra(module)
+    return command if broken is None else f"# {command}   # not here yet: {broken}"
 
 
 def live_outcome(folder: RunFolder, metrics: RunMetrics) -> str:

@@ -45,6 +45,28 @@ def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> N
     assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(EXPORTERS)
 
 
+def test_an_extra_installed_but_unable_to_load_is_named_not_offered(
+    run_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """open3d installed without the libusb its wheel links: the mesh export's line says so, as a
+    comment that a pasted block skips, instead of a command that ends in a traceback."""
+    import importlib
+
+    real_import, real_spec = importlib.import_module, importlib.util.find_spec
+
+    def failing(name: str, package: str | None = None):  # type: ignore[no-untyped-def]
+        if name == "open3d":
+            raise ImportError(
+                "libusb-1.0.so.0: cannot open shared object file: No such file or directory", name="open3d"
+            )
+        return real_import(name, package)
+
+    monkeypatch.setattr(importlib, "import_module", failing)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: object() if name == "open3d" else real_spec(name))
+    (mesh,) = [line for line in _next(run_dir) if "--to mesh" in line]
+    assert mesh.startswith("# ") and "libusb-1.0-0" in mesh and "cannot load" in mesh
+
+
 def test_what_is_not_installed_comes_with_its_install_command(
     run_dir: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
