@@ -121,6 +121,7 @@ def intersect_tiles(
     span = (end - first).reshape(-1, 2)  # [I N, 2] tiles across, down
     counts = span[:, 0] * span[:, 1]  # [I N]
     ends = torch.cumsum(counts, 0)  # [I N] exclusive end of each Gaussian's entries
+    count = ends[-1] if ends.numel() else torch.zeros((), dtype=torch.long, device=depths.device)
     module = intersect_kernel(depths.device) if kernel and depths.is_cuda else None
     if module is not None:
         keys, ids = module.intersect_tiles_fixed(
@@ -128,7 +129,7 @@ def intersect_tiles(
             ends, grid.tile_size, grid.tiles_x, grid.tiles_y, grid.tile_bits, grid.image_bits, capacity,
             grid.padding_key,
         )  # fmt: skip
-        return TileIntersections(keys, ids, ends[-1])
+        return TileIntersections(keys, ids, count)
     entry = torch.arange(capacity, device=depths.device)
     owner = torch.searchsorted(ends, entry, right=True).clamp(max=images * n - 1)  # [capacity] flat image*N+gaussian
     local = entry - (ends[owner] - counts[owner])
@@ -141,7 +142,6 @@ def intersect_tiles(
         depths.detach().float().reshape(-1).view(torch.int32).long()[owner] & 0xFFFFFFFF
     )  # float32's, as gsplat's
     keys = (image << (32 + grid.tile_bits)) | ((tile_y * grid.tiles_x + tile_x) << 32) | depth_bits
-    count = ends[-1] if ends.numel() else torch.zeros((), dtype=torch.long, device=depths.device)
     padded = entry >= count
     keys = torch.where(padded, torch.full_like(keys, grid.padding_key), keys)
     ids = torch.where(padded, torch.zeros_like(owner), owner)
