@@ -79,7 +79,11 @@ class Camera(Protocol):
 
 class SdkCamera:
     """A camera through pyrealsense2: the one of serial number `serial`, or the recording at
-    `recording` played back in order (every frame, not in real time)."""
+    `recording` played back in order, as fast as it is read rather than in real time.
+
+    The SDK plays a recording into the same small frame queue a camera fills, so a reader that
+    falls behind the playback still loses frames: the bag reader (`open_dataset`) is the lossless
+    way to read a recording; this path is the SDK's own reading, kept to check ours against."""
 
     def __init__(self, serial: str, recording: Path | None = None) -> None:
         import pyrealsense2 as rs
@@ -87,25 +91,28 @@ class SdkCamera:
         self.rs = rs
         self.serial = serial
         self.recording = recording
-        self.pipeline = rs.pipeline()
+        self.context = rs.context()
+        self.pipeline = rs.pipeline(self.context)
         self.align = rs.align(rs.stream.color)
 
     def start(self) -> CameraStreams:
         rs, config = self.rs, self.rs.config()
         width, height, fps = STREAM_MODE
-        if self.recording is not None:
-            config.enable_device_from_file(str(self.recording), repeat_playback=False)
-        else:
-            config.enable_device(self.serial)
-            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
-            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
         try:
+            if self.recording is not None:
+                # non-real-time before the playback starts: set after `start` (the SDK's examples),
+                # the first frames are already playing in real time and a busy host drops them
+                playback = self.context.load_device(str(self.recording)).as_playback()
+                playback.set_real_time(False)
+                config.enable_device(playback.get_info(rs.camera_info.serial_number))
+            else:
+                config.enable_device(self.serial)
+                config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+                config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
             profile = self.pipeline.start(config)
         except RuntimeError as exc:
             raise CameraLost(f"cannot start streaming: {exc}") from None
         device = profile.get_device()
-        if self.recording is not None:
-            device.as_playback().set_real_time(False)
         color = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
         k = np.array([[color.fx, 0.0, color.ppx], [0.0, color.fy, color.ppy], [0.0, 0.0, 1.0]])
         info = rs.camera_info
