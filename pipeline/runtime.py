@@ -86,7 +86,12 @@ class Graph:
     queue_size: int = 4
     decode_workers: int = 2
     services: list[Service] = field(default_factory=list)
+    decode: Callable[[Any], Frame | None] | None = None  # the decode stage's work; None: the source's own
     queues: dict[str, StageQueue[Any]] = field(default_factory=dict)  # filled by run_graph, for live status
+
+    @property
+    def decoder(self) -> Callable[[Any], Frame | None]:
+        return self.decode or self.source.decode
 
     @property
     def source_policy(self) -> Policy:
@@ -157,7 +162,7 @@ async def run_graph(graph: Graph, stop: asyncio.Event) -> RuntimeReport:
         async with asyncio.TaskGroup() as group:
             upstream: list[asyncio.Task[Any]] = [
                 group.create_task(_feed(graph.source, refs, stop)),
-                group.create_task(transform_stage("decode", graph.source.decode, refs, frames, pools[0], stats[0])),
+                group.create_task(transform_stage("decode", graph.decoder, refs, frames, pools[0], stats[0])),
                 group.create_task(transform_stage("upload", graph.upload, frames, uploaded, pools[1], stats[1])),
             ]
             slam = group.create_task(DedicatedThread(graph.slam, uploaded, results, stats[2], stop).run())
@@ -187,7 +192,7 @@ async def _collect(source: AsyncIterable[Any]) -> list[Any]:
 
 def run_sync(graph: Graph, stop: threading.Event) -> RuntimeReport:
     """The plain loop: read, decode, copy, track and map one frame after the other."""
-    steps = [("decode", graph.source.decode), ("upload", graph.upload), (graph.slam.name, graph.slam.run)]
+    steps = [("decode", graph.decoder), ("upload", graph.upload), (graph.slam.name, graph.slam.run)]
     stats = {name: StageStats(name) for name, _ in steps}
     items = asyncio.run(_collect(graph.source))
     start = time.perf_counter()

@@ -34,6 +34,7 @@ from pipeline.slam.state import Checkpoint, LoopState
 from pipeline.slam.view import SteppedSlam
 from pipeline.source import Source
 from pipeline.stages.frame_log import FrameLog
+from pipeline.stages.odometry import FeatureDecode, OdometryUpload
 from pipeline.stages.sinks import ResultConsumer, ResultSink
 from pipeline.stages.slam import FrameObserver, slam_stage
 from pipeline.stages.upload import make_uploader
@@ -185,15 +186,19 @@ def slam_stage_of(session: Session) -> ThreadedStage:
 
 
 def graph_of(session: Session) -> Graph:
-    """source -> decode -> upload -> SLAM (with its observers) -> sink."""
-    config = session.config
+    """source -> decode -> upload -> SLAM (with its observers) -> sink; with visual odometry
+    (`tracking.odometry`), image features in decode and each frame's motion before its upload."""
+    config, tracking = session.config, session.config.tracking
+    upload = make_uploader(session.device, slots=config.run.queue_size + 2)
+    odometry = tracking.odometry == "features"
     return Graph(
         source=session.source,
-        upload=make_uploader(session.device, slots=config.run.queue_size + 2),
+        upload=OdometryUpload(upload, tracking.odometry_min_inliers) if odometry else upload,
         slam=slam_stage_of(session),
         sink=session.sink,
         queue_size=config.run.queue_size,
         services=list(session.services),
+        decode=FeatureDecode(session.source.decode, tracking.odometry_features) if odometry else None,
     )
 
 

@@ -16,6 +16,7 @@ Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
 MappingRate = Literal["frame", "keyframe"]
 TrackingMethod = Literal["adam", "align"]
+OdometryKind = Literal["features", "off"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
 ColorEncoding = Literal["bt709_full", "bt601_limited"]  # a YUV stream's matrix and range
 PoseUse = Literal["initial_guess", "groundtruth", "ignore"]  # what a source's own poses are used for
@@ -103,6 +104,13 @@ class TrackingConfig:
     align_large_step_deg: float = 2.0  # align: likewise for its rotation, degrees
     align_max_renders: int = 3  # align: renders per frame at most (1: one render, no realignment)
     align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)
+    odometry: OdometryKind = "features"  # features: a second guess from image features matched to the frame before (visual odometry), tracked too where it and constant velocity disagree; off: constant velocity only
+    odometry_features: int = 1000  # ORB keypoints per frame at most
+    odometry_min_inliers: int = 15  # feature matches agreeing in the image and in depth for a motion to count
+    odometry_agree_m: float = (
+        0.03  # the two guesses closer than this (and odometry_agree_deg) are tracked once, from odometry's
+    )
+    odometry_agree_deg: float = 2.0  # likewise for their rotation, degrees
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ def host_frame_tensors(frame: Frame) -> DeviceFrame:
         c2w_gt=None if frame.c2w_gt is None else torch.from_numpy(frame.c2w_gt).float(),
         c2w_prior=None if frame.c2w_prior is None else torch.from_numpy(frame.c2w_prior).float(),
         received_at=frame.received_at,
+        motion=frame.motion,
     )
 
 
@@ -90,7 +91,7 @@ class PinnedUploader:
                 tensor.record_stream(consumer)  # allocated on the copy stream, used on the compute stream
         self._events[k] = event
         device_frame = DeviceFrame(
-            frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt, c2w_prior, frame.received_at
+            frame.index, frame.timestamp, color, depth, intrinsics, c2w_gt, c2w_prior, frame.received_at, frame.motion
         )
         return UploadedFrame(device_frame, event)
 

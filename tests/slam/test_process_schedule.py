@@ -186,7 +186,7 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
     """Killed (SIGKILL) or hung (SIGSTOP: no sign of life for slam.backend_timeout_s) after
     `after` frames: one line, exit code 1, every frame tracked so far saved with the last
     complete map; --resume finishes the run (here with mapping.final_iters, whose render
-    metrics before it are reported)."""
+    metrics before it are reported where frames were left to run)."""
     consume = ResultSink.consume
 
     def consume_then_fail(self: ResultSink, result) -> None:  # type: ignore[no-untyped-def]
@@ -214,7 +214,9 @@ def test_a_failing_mapping_process_leaves_a_complete_resumable_run(
     resumed = json.loads((folder / "metrics.json").read_text())
     assert resumed["frames"] == 6 and resumed["stopped"] is None and resumed["ate"] is not None
     assert resumed["schedule"] == "process" and resumed["mapping_process"]["frames_mapped"] == 6 - saved.frames_done
-    assert resumed["render_before_final_iters"]["psnr_db"] > 0 and resumed["render"]["keyframes"] >= 1
+    assert resumed["render"]["keyframes"] >= 1
+    if saved.frames_done < 6:  # tracking may finish every frame before the failure is noticed: nothing to resume then
+        assert resumed["render_before_final_iters"]["psnr_db"] > 0
     rows = [int(line.split(",")[0]) for line in (folder / "frames.csv").read_text().splitlines()[1:]]
     assert rows == list(range(6))  # no hole left by the failure
 

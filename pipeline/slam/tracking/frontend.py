@@ -6,6 +6,9 @@ each frame to mapping as a `TrackedFrame`; `mark` says where a checkpoint cut af
 
 After a lost frame the next guess comes from the last frame tracked well (never from a lost
 pose), and a frame judged lost is tracked again from a few keyframes' poses (`_relocalise`).
+Visual odometry (the frame's `motion` since the frame before, from image features) gives a second
+guess; where it and the usual one disagree, the frame is tracked from both and the better kept
+(`_guesses`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from pipeline.config import TrackingConfig
@@ -89,6 +93,10 @@ class TrackingFrontend:
         self.clock = StageClock(device)
         self._last_c2w: torch.Tensor | None = None  # [4, 4] the last frame's pose on the host (as tracked)
         self._large_step = False  # the last frame moved far from the one before, or was lost
+        self._last_index: int | None = None  # the frame index of the last frame tracked
+        self._since_good: np.ndarray | None = (
+            None  # [4, 4] the last frame's pose in the last good one's camera, by odometry
+        )
 
     @property
     def frames_done(self) -> int:
@@ -110,6 +118,7 @@ class TrackingFrontend:
         self.trajectory = Trajectory.restored(saved, self.device)
         self.loss_history = list(saved.loss_history)
         self._last_c2w, self._large_step = None, False  # the step into the first frame after it is unknown
+        self._last_index, self._since_good = None, None
 
     def track(
         self, frame: DeviceFrame, latest: MapVersion | None, anchor: KeyframePose | None = None
@@ -126,8 +135,7 @@ class TrackingFrontend:
                 attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
             else:
                 gaussians = latest.for_current_stream()
-                guess = self._initial_pose(frame, latest.keyframes)
-                attempt = self._attempt(gaussians, frame, guess, large_step=self._large_step)
+                attempt = self._best_of(gaussians, frame, self._guesses(frame, latest.keyframes))
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
             self._record(frame, attempt, anchor or self._anchor(latest), first=latest is None)
@@ -137,6 +145,7 @@ class TrackingFrontend:
             ready.record()
         result = self._result(frame, attempt)
         self._note_step(result.c2w, attempt.state)
+        self._note_odometry(frame, attempt.state)
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
         if frame.received_at is not None:
             result.received_at = frame.received_at
@@ -152,6 +161,52 @@ class TrackingFrontend:
             return None
         newest = latest.keyframes[-1]
         return newest if newest.c2w._base is None else replace(newest, c2w=newest.c2w.clone())
+
+    def _guesses(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> list[torch.Tensor]:
+        """The poses [4, 4] to track the frame from: the usual guess (`_initial_pose`), and
+        odometry's (`_odometry_guess`) where the frame has one: odometry's alone where the two
+        agree (`odometry_agree_m`, `_deg`), else both, odometry's first."""
+        usual = self._initial_pose(frame, keyframes)
+        odometry = self._odometry_guess(frame, keyframes)
+        if odometry is None:
+            return [usual]
+        apart_m, apart_deg = motion_extent(invert_pose(usual) @ odometry).tolist()
+        if apart_m <= self.config.odometry_agree_m and apart_deg <= self.config.odometry_agree_deg:
+            return [odometry]
+        return [odometry, usual]
+
+    def _odometry_guess(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor | None:
+        """The last good pose moved by odometry's motion since it (the frames after it chained),
+        as the keyframes now place it; None without odometry, or where its chain is broken."""
+        motion = frame.motion
+        if self.config.odometry == "off" or motion is None or self._since_good is None:
+            return None
+        if motion.since != self._last_index or self.trajectory.last_good < 0:
+            return None
+        now = {k.position: k.c2w for k in keyframes}
+        c2c = torch.from_numpy(self._since_good @ motion.c2c).to(self.device, torch.float32)
+        return self.trajectory.followed(self.trajectory.last_good, now) @ c2c
+
+    def _note_odometry(self, frame: DeviceFrame, state: TrackingState) -> None:
+        """Carry odometry's chain to the next frame: from a good frame it starts again; across a
+        lost one it takes the lost frame's motion on (none: the chain is broken)."""
+        if state is not TrackingState.LOST:
+            self._since_good = np.eye(4)
+        elif self._since_good is not None and frame.motion is not None and frame.motion.since == self._last_index:
+            self._since_good = self._since_good @ frame.motion.c2c
+        else:
+            self._since_good = None
+        self._last_index = frame.index
+
+    def _best_of(self, gaussians: Gaussians, frame: DeviceFrame, guesses: list[torch.Tensor]) -> Attempt:
+        """The frame tracked from each guess; of those judged sound (not lost, no warning), the
+        one of least loss per pixel, else the first not lost, else the first."""
+        attempts = [self._attempt(gaussians, frame, guess, large_step=self._large_step) for guess in guesses]
+        sound = [a for a in attempts if not a.verdict.lost and not a.verdict.warning]
+        if sound:
+            return min(sound, key=lambda a: a.verdict.per_pixel)
+        kept = [a for a in attempts if not a.verdict.lost]
+        return kept[0] if kept else attempts[0]
 
     def _initial_pose(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last

@@ -1,0 +1,98 @@
+"""Visual odometry from image features: how the camera moved between two frames.
+
+Dense alignment against the rendered map converges from a guess within a few centimetres of the
+truth; constant velocity gives such a guess only while the motion is smooth and slow. Features
+matched between two frames do not care how far the camera moved, as long as the views overlap:
+ORB keypoints of the earlier frame, lifted by its depth, are matched to the later frame's and the
+later camera's pose is solved from them (PnP in RANSAC, refined by Levenberg-Marquardt). A solve
+is kept only when enough matches agree with it in 3D as well, with the later frame's own depth:
+on a weakly textured view PnP can return a pose that fits a few matches in the image and none in
+depth. Plain NumPy and OpenCV on the host; the pipeline runs it beside the GPU
+(`pipeline/stages/odometry.py`).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pipeline.frame import FrameMotion, ImageFeatures
+
+RATIO_TEST = 0.8  # a match is kept when its distance is below this fraction of the second best's
+REPROJECTION_PX = 3.0  # RANSAC's inlier threshold at 640 pixels of width (scaled with the image)
+RANSAC_ITERATIONS = 100
+AGREE_M = 0.03  # a PnP inlier agrees in 3D when it lands within this ...
+AGREE_FRACTION = 0.03  # ... plus this fraction of its depth of the later frame's own point
+FAST_THRESHOLD = 5  # low: real indoor images are smooth (a plain cabinet gives 190 keypoints at 20)
+BORDER_PX = 15  # ORB's edge threshold and patch size
+
+
+def detector(max_features: int) -> cv2.ORB:
+    """An ORB detector; one per thread (OpenCV's detectors are not shared across threads)."""
+    return cv2.ORB.create(max_features, fastThreshold=FAST_THRESHOLD, edgeThreshold=BORDER_PX, patchSize=BORDER_PX)
+
+
+def extract_features(orb: cv2.ORB, color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray) -> ImageFeatures:
+    """The ORB keypoints of `color` [H, W, 3] uint8 RGB, each lifted by `depth` [H, W] (metres,
+    0 = none) through `intrinsics` [3, 3] (pixels) into the camera's frame."""
+    gray = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY)
+    keypoints, descriptors = orb.detectAndCompute(gray, None)
+    pixels = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
+    if descriptors is None:
+        descriptors = np.zeros((0, 32), dtype=np.uint8)
+    rows = np.clip(np.rint(pixels[:, 1]).astype(np.int64), 0, depth.shape[0] - 1)
+    cols = np.clip(np.rint(pixels[:, 0]).astype(np.int64), 0, depth.shape[1] - 1)
+    z = depth[rows, cols].astype(np.float32)
+    x = (pixels[:, 0] - intrinsics[0, 2]) / intrinsics[0, 0] * z
+    y = (pixels[:, 1] - intrinsics[1, 2]) / intrinsics[1, 1] * z
+    return ImageFeatures(pixels, descriptors, np.stack([x, y, z], axis=1).astype(np.float32))
+
+
+def match(earlier: ImageFeatures, later: ImageFeatures) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into `earlier`, into `later`) of the matches that pass the ratio test and whose
+    earlier keypoint has depth; two [M] int64 arrays."""
+    none = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    if len(earlier.descriptors) < 2 or len(later.descriptors) < 2:
+        return none
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(earlier.descriptors, later.descriptors, k=2)
+    kept = [
+        (a.queryIdx, a.trainIdx) for a, b in (p for p in pairs if len(p) == 2) if a.distance < RATIO_TEST * b.distance
+    ]
+    if not kept:
+        return none
+    found = np.array(kept, dtype=np.int64)
+    with_depth = earlier.points[found[:, 0], 2] > 0
+    return found[with_depth, 0], found[with_depth, 1]
+
+
+def relative_motion(
+    earlier: ImageFeatures, later: ImageFeatures, intrinsics: np.ndarray, width: int, min_inliers: int, since: int
+) -> FrameMotion | None:
+    """The later camera's pose in the earlier camera's frame, from features matched between the
+    two frames (`intrinsics` [3, 3] pixels, the images `width` pixels wide; `since` the earlier
+    frame's index); None when fewer than `min_inliers` matches agree with it in the image and in
+    depth."""
+    first, second = match(earlier, later)
+    if len(first) < max(min_inliers, 6):
+        return None
+    world = earlier.points[first].astype(np.float64)
+    image = later.pixels[second].astype(np.float64)
+    k = intrinsics.astype(np.float64)
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(
+        world, image, k, None, iterationsCount=RANSAC_ITERATIONS,
+        reprojectionError=REPROJECTION_PX * width / 640, confidence=0.999, flags=cv2.SOLVEPNP_EPNP,
+    )  # fmt: skip
+    if not found or inliers is None or len(inliers) < min_inliers:
+        return None
+    kept = inliers[:, 0]
+    rvec, tvec = cv2.solvePnPRefineLM(world[kept], image[kept], k, None, rvec, tvec)
+    later_from_earlier = np.eye(4)
+    later_from_earlier[:3, :3] = cv2.Rodrigues(rvec)[0]
+    later_from_earlier[:3, 3] = tvec[:, 0]
+    moved = world[kept] @ later_from_earlier[:3, :3].T + later_from_earlier[:3, 3]
+    seen = later.points[second[kept]].astype(np.float64)
+    has_depth = seen[:, 2] > 0
+    agree = has_depth & (np.linalg.norm(moved - seen, axis=1) < AGREE_M + AGREE_FRACTION * seen[:, 2])
+    if int(agree.sum()) < min_inliers:
+        return None
+    return FrameMotion(since, np.linalg.inv(later_from_earlier), int(agree.sum()))
