@@ -91,6 +91,10 @@ for part in "$@"; do
                 # (one render is align before large steps were followed; the rest the new tracking; 640x480 throughout)
                 bench "$cabinet" "$tum" synthetic-fast-loops --presets "${part#drift-}" --variants $drift_variants \
                   --set dataset.width=640 --set dataset.height=480 --stem "drift_${part#drift-}" ;;
+    odometry)  # issue 35: visual odometry's second guess against constant velocity's alone; every schedule it changes
+              bench "$cabinet" "$tum" synthetic-fast-loops --presets tiny \
+                --variants process,process-odometry,sequential,sequential-odometry \
+                --set dataset.width=640 --set dataset.height=480 --stem odometry_tiny ;;
     drift-base) bench "$cabinet" "$tum" synthetic-fast-loops --presets base --variants default,process \
                   --set dataset.width=640 --set dataset.height=480 --stem drift_base
                 python3 bench/loop_recall.py --out "$out" --data "$cabinet" --data "$tum" --size 640x480 --trap \

@@ -23,6 +23,7 @@ from pipeline.stages.upload import HostUploader
 CPU = torch.device("cpu")
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])  # pixels, for 320 x 240
 PLANE_Z = 2.0  # metres: the wall the first camera faces
+ODOMETRY = TrackingConfig(odometry="features")
 
 
 def _texture(seed: int = 0) -> np.ndarray:
@@ -117,7 +118,7 @@ def test_tracking_takes_odometrys_guess_alone_where_it_agrees_and_both_where_not
     a, b, c = shifted(0.01), shifted(0.02), shifted(0.035)
     far = shifted(0.235)
     tracker = StubTracker([(a, ""), (b, ""), (c, ""), (far, ""), (shifted(0.045), "")])
-    front = TrackingFrontend(tracker, TrackingConfig(), CPU)
+    front = TrackingFrontend(tracker, ODOMETRY, CPU)
     front.track(frame(0), None)
     front.track(frame(1), version())
     front.track(frame(2), version())
@@ -132,7 +133,7 @@ def test_tracking_takes_odometrys_guess_alone_where_it_agrees_and_both_where_not
 
 
 def test_tracking_ignores_odometry_that_is_off_or_from_a_frame_it_did_not_track() -> None:
-    for config, since in ((replace(TrackingConfig(), odometry="off"), 1), (TrackingConfig(), 0)):
+    for config, since in ((TrackingConfig(), 1), (ODOMETRY, 0)):  # the default is off
         tracker = StubTracker([(shifted(0.01), ""), (shifted(0.02), "")])
         front = TrackingFrontend(tracker, config, CPU)
         front.track(frame(0), None)
@@ -146,7 +147,7 @@ def test_odometry_chains_across_a_lost_frame() -> None:
     """Frame 2 is lost; odometry's motions 1->2 and 2->3 carry frame 3's guess from frame 1."""
     script = [(shifted(0.1), ""), (shifted(0.1), ""), (shifted(9.0), "lost"), (shifted(0.3), ""), (shifted(0.1), "")]
     tracker = StubTracker(script)  # frames 1 and 3 from two guesses each (odometry's and the last good pose)
-    front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
+    front = TrackingFrontend(tracker, replace(ODOMETRY, relocalise_candidates=0), CPU)
     front.track(frame(0), None)
     front.track(_with_motion(1, 0, 0.1), version())  # type: ignore[arg-type]
     front.track(_with_motion(2, 1, 0.1), version())  # type: ignore[arg-type]
