@@ -107,9 +107,7 @@ class TrackingConfig:
     odometry: OdometryKind = "off"  # features: a second guess from image features matched to the frame before (visual odometry), tracked too where it and constant velocity disagree; off: constant velocity only (the default until measured on the GPU: bench part `odometry`)
     odometry_features: int = 1000  # ORB keypoints per frame at most
     odometry_min_inliers: int = 15  # feature matches agreeing in the image and in depth for a motion to count
-    odometry_agree_m: float = (
-        0.03  # the two guesses closer than this (and odometry_agree_deg) are tracked once, from odometry's
-    )
+    odometry_agree_m: float = 0.03  # guesses this close (and odometry_agree_deg) are tracked once, from odometry's
     odometry_agree_deg: float = 2.0  # likewise for their rotation, degrees
 
 
