@@ -14,6 +14,7 @@ from test_relocalisation import StubTracker, frame, shifted, version
 
 from pipeline.config import DatasetConfig, TrackingConfig
 from pipeline.frame import Frame, FrameMotion, ImageFeatures
+from pipeline.geometry import motion_extent
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.slam.tracking.frontend import TrackingFrontend
 from pipeline.slam.tracking.odometry import detector, extract_features, relative_motion
@@ -72,9 +73,8 @@ def _motion_of(c2c: np.ndarray, scale_later_depth: float = 1.0) -> FrameMotion |
 
 def _errors(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """(metres, degrees) between two [4, 4] poses."""
-    delta = np.linalg.inv(truth) @ found
-    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
-    return float(np.linalg.norm(delta[:3, 3])), float(angle)
+    metres, degrees = motion_extent(torch.from_numpy(np.linalg.inv(truth) @ found)).tolist()
+    return metres, degrees
 
 
 @pytest.mark.parametrize(("move", "deg_y", "deg_x"), [((0.15, 0.0, 0.05), 8.0, 0.0), ((-0.1, 0.08, -0.12), -5.0, 4.0)])

@@ -94,9 +94,7 @@ class TrackingFrontend:
         self._last_c2w: torch.Tensor | None = None  # [4, 4] the last frame's pose on the host (as tracked)
         self._large_step = False  # the last frame moved far from the one before, or was lost
         self._last_index: int | None = None  # the frame index of the last frame tracked
-        self._since_good: np.ndarray | None = (
-            None  # [4, 4] the last frame's pose in the last good one's camera, by odometry
-        )
+        self._since_good: np.ndarray | None = None  # [4, 4] the last frame in the last good one's camera
 
     @property
     def frames_done(self) -> int:
@@ -166,8 +164,9 @@ class TrackingFrontend:
         """The poses [4, 4] to track the frame from: the usual guess (`_initial_pose`), and
         odometry's (`_odometry_guess`) where the frame has one: odometry's alone where the two
         agree (`odometry_agree_m`, `_deg`), else both, odometry's first."""
-        usual = self._initial_pose(frame, keyframes)
-        odometry = self._odometry_guess(frame, keyframes)
+        now = {k.position: k.c2w for k in keyframes}
+        usual = self._initial_pose(frame, now)
+        odometry = self._odometry_guess(frame, now)
         if odometry is None:
             return [usual]
         apart_m, apart_deg = motion_extent(invert_pose(usual) @ odometry).tolist()
@@ -175,7 +174,7 @@ class TrackingFrontend:
             return [odometry]
         return [odometry, usual]
 
-    def _odometry_guess(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor | None:
+    def _odometry_guess(self, frame: DeviceFrame, now: dict[int, torch.Tensor]) -> torch.Tensor | None:
         """The last good pose moved by odometry's motion since it (the frames after it chained),
         as the keyframes now place it; None without odometry, or where its chain is broken."""
         motion = frame.motion
@@ -183,7 +182,6 @@ class TrackingFrontend:
             return None
         if motion.since != self._last_index or self.trajectory.last_good < 0:
             return None
-        now = {k.position: k.c2w for k in keyframes}
         c2c = torch.from_numpy(self._since_good @ motion.c2c).to(self.device, torch.float32)
         return self.trajectory.followed(self.trajectory.last_good, now) @ c2c
 
@@ -208,16 +206,15 @@ class TrackingFrontend:
         kept = [a for a in attempts if not a.verdict.lost]
         return kept[0] if kept else attempts[0]
 
-    def _initial_pose(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> torch.Tensor:
+    def _initial_pose(self, frame: DeviceFrame, now: dict[int, torch.Tensor]) -> torch.Tensor:
         """From the frames tracked well, never a lost one: the device's own motion since the last
         good frame applied to its estimate when the frames bring pose priors, else constant
         velocity when the last frame was tracked from its prediction and the one before it was
         good too, else the last good pose (after a loss or a relocalisation the velocity starts
-        again from zero). Those frames' poses as the map version's `keyframes` place them: after
-        a loop's correction the guess moves with the map."""
+        again from zero). Those frames' poses as the map version's keyframes place them (`now`:
+        their poses by position): after a loop's correction the guess moves with the map."""
         trajectory = self.trajectory
         good, prior, states, last = trajectory.last_good, trajectory.last_prior, trajectory.states, len(trajectory) - 1
-        now = {k.position: k.c2w for k in keyframes}
         if frame.c2w_prior is not None and prior is not None:
             return trajectory.followed(good, now) @ invert_pose(prior) @ frame.c2w_prior
         if good == last >= 1 and states[-1] is TrackingState.TRACKED and states[-2] is not TrackingState.LOST:
