@@ -63,6 +63,13 @@ for part in "$@"; do
                cp /tmp/profile/$loader/profile.txt "$out/profile_tiny_$loader.txt"
                cp /tmp/profile/$loader/metrics.json "$out/profile_tiny_$loader.json"
              done ;;
+    diagnose)  # issue 34: where sequential's tracking time goes (recompiles, graph breaks, per-frame times, the profile)
+              for sched in sequential process; do
+                TORCH_LOGS=recompiles,graph_breaks python3 -m pipeline run "$tum" --preset tiny --quiet --output /tmp/diag \
+                  --name $sched --overwrite --profile --set slam.schedule=$sched "${dry[@]}" > "$out/diagnose_$sched.log" 2>&1
+                tail -n 3 "$out/diagnose_$sched.log"; grep -c "Recompiling\|recompil" "$out/diagnose_$sched.log"
+                for f in frames.csv metrics.json profile.txt; do cp /tmp/diag/$sched/$f "$out/diagnose_${sched}_$f" 2>/dev/null; done
+              done ;;
     syncs) python3 bench/sync_points.py --out "$out" --preset tiny --frames 30 2>&1 | grep -v Warning | tail -n 40 ;;
     costs) python3 bench/iteration_costs.py --out "$out" 2>&1 | grep -v "^gsplatam" | tail -n 45 ;;
     tracker) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny,small --variants adam,align,align-refine --stem tracker
