@@ -42,6 +42,12 @@ for part in "$@"; do
                cp -r .device/cache/gsplatam/extensions "$out/" ;;  # to carry into later calls
     gpu-tests) python3 -m pytest tests/gpu -o addopts="" -p no:cacheprovider -q -rs 2>&1 | tee "$out/gpu_tests.txt" | tail -n 30 ;;
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
+    pace-640)  # issue 34's table: sequential (SplaTAM's reference) and process (keyframe rate) at 640x480
+              bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small --variants sequential,process --stem pace_640 ;;
+    pace-1200) bench synthetic --presets tiny,small --variants sequential,process --stem pace_1200 ;;
+    pace-base) bench "$tum" --presets base --variants sequential --stem pace_base_tum ;;
+    odometry-cabinet) bench "$cabinet" --presets tiny --variants process,process-odometry \
+                        --set dataset.width=640 --set dataset.height=480 --stem odometry_cabinet_tiny ;;
     pace-tum) bench "$tum" --presets tiny --variants sequential,process-frame,process-keyframe --stem pace_tiny_tum ;;
     drift-cabinet) bench "$cabinet" --presets tiny --variants process-one-render,process,process-adjust \
                      --set dataset.width=640 --set dataset.height=480 --stem drift_cabinet_tiny ;;

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -146,6 +147,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "loop_correct_ms": max((c.correct_ms for c in closed), default=None),
         "loop_published_ms": max((c.published_ms for c in closed), default=None),
         "warmup_frames_excluded": t.warmup_frames_excluded,
+        "start_up": process["start_up"] if process else None,  # the process schedule's warm-up, in parts
         "error": None,
     }
 
@@ -195,16 +197,22 @@ def run_matrix(
     device: torch.device,
     progress: bool,
     profile: bool = False,
+    on_report: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Run every cell here on `device`, one after the other; run folders (and the generated
     synthetic room) go under `runs`. A signal stops the matrix after the cell it interrupted
     (whose run folder is written, or removed when it had saved nothing): the report holds the
-    cells run."""
+    cells run. `on_report` gets the report of the cells run so far after each cell (so that a
+    matrix killed midway keeps its finished cells)."""
     start = time.perf_counter()
     rows = []
     for done, cell in enumerate(cells):
         log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
         rows.append(run_cell(cell, base_overrides, runs, device, progress, profile))
+        if on_report is not None and done + 1 < len(cells):
+            on_report(
+                report_of([dict(r) for r in rows], base_overrides, profile, time.perf_counter() - start, device, None)
+            )
         if rows[-1]["interrupted"]:
             log.info("bench: stopped by a signal after %d of %d cells", done + 1, len(cells))
             break

@@ -44,6 +44,7 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
 # Generated sequences by name; any other sequence is a dataset folder.
 SYNTHETIC_SEQUENCES: dict[str, tuple[str, ...]] = {
     "synthetic": (),  # the Replica-like room, 1200x680 on a GPU
+    "synthetic-640x480": ("synthetic.width=640", "synthetic.height=480"),  # the same room at the TUM size
     "synthetic-fast": ("synthetic.speed=1.0",),  # the same room, the camera 3.3x faster (1 m/s)
     "synthetic-tum": (  # TUM-like: 640x480, Kinect-like depth noise and holes, timestamp jitter
         "synthetic.layout=tum", "synthetic.width=640", "synthetic.height=480",

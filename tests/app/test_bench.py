@@ -12,9 +12,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 from conftest import ROOT
 
-from pipeline.app.bench import add_ratios
+from pipeline.app import bench as bench_module
+from pipeline.app.bench import Cell, add_ratios, run_matrix
 
 
 def _row(preset: str, variant: str, total_ms: float, repeat: int = 0, error: str | None = None) -> dict[str, Any]:
@@ -42,6 +44,24 @@ def test_with_one_variant_the_presets_are_compared_and_with_one_cell_nothing() -
     failed = [_row("tiny", "default", 100, error="UserError: x"), _row("tiny", "packed", 50)]
     add_ratios(failed)
     assert failed[1]["total_ms_ratio"] is None  # its reference failed
+
+
+def test_the_matrix_reports_its_finished_cells_after_each_one(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A matrix killed midway (SIGKILL, a device call's time limit) keeps the cells it finished:
+    the report of the cells so far goes out after each cell but the last (whose report is the
+    whole matrix's), without the ratios of one report leaking into the next."""
+    totals = iter([100.0, 50.0, 25.0])
+
+    def fake_cell(cell: Cell, *args: object) -> dict[str, Any]:
+        return {**_row(cell.preset, cell.variant, next(totals)), "interrupted": False}
+
+    monkeypatch.setattr(bench_module, "run_cell", fake_cell)
+    cells = [Cell("room", "tiny", variant, 0) for variant in ("default", "packed", "views2")]
+    partial: list[dict[str, Any]] = []
+    report = run_matrix(cells, [], tmp_path, torch.device("cpu"), False, on_report=partial.append)
+    assert [[r["variant"] for r in p["rows"]] for p in partial] == [["default"], ["default", "packed"]]
+    assert partial[0]["rows"][0]["total_ms_ratio"] is None and partial[1]["rows"][1]["total_ms_ratio"] == 0.5
+    assert [r["total_ms_ratio"] for r in report["rows"]] == [1.0, 0.5, 0.25]
 
 
 @pytest.mark.slow

@@ -250,6 +250,36 @@ def test_kernel_busy_time_is_the_union_of_the_intervals() -> None:
 
 
 @pytest.mark.slow
+def test_the_tracker_warms_up_while_the_mapping_process_maps_the_first_frame(replica_seq: Path) -> None:
+    """On the first frame the tracker is called once more, after the frame went to mapping and
+    against a map seeded from that frame alone (one Gaussian per valid pixel), its result
+    dropped; the run's start is reported in parts."""
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:2]
+    slam = _process_slam(["mapping.rate=frame", "mapping.refine_while_idle=false"])
+    slam.warms_tracker = True  # as on CUDA
+    track = slam.frontend.tracker
+    calls: list[tuple[list[int], int]] = []
+
+    def counted(gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False):  # type: ignore[no-untyped-def]
+        calls.append((list(slam.mapping.handed), len(gaussians)))
+        return track(gaussians, frame, c2w_init, large_step)
+
+    slam.frontend.tracker = counted
+    try:
+        first = slam.step(frames[0])
+        valid = int((frames[0].depth > 0).sum())
+        assert calls == [([0], valid)] and first.mapped
+        assert slam.frames_done == 1 and torch.equal(slam.poses[0], torch.eye(4))
+        slam.step(frames[1], is_last=True)
+        assert len(calls) == 2  # frame 1 tracked once, against the mapping process's version
+        slam.finish(0)
+        start = slam.mapping_summary()["start_up"]
+        assert set(start) == {"interpreter_s", "setup_s", "first_frame_s", "tracker_s"}
+        assert all(value is not None and value > 0 for value in start.values())
+    finally:
+        slam.close()
+
+
 def test_a_warm_up_leaves_no_map_behind_and_the_run_starts_afresh(replica_seq: Path) -> None:
     """After a live warm-up on a frame, nothing is published for the session (a stop at once has
     nothing to save); the next frames start a map at the identity."""

@@ -7,6 +7,7 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from pipeline.app.bench_matrix import ABLATIONS, SYNTHETIC_SEQUENCES, default_variants
 from pipeline.config.choices import unknown_name
@@ -64,7 +65,11 @@ def run(args: argparse.Namespace) -> int:
     if args.ray is None:
         _check_folders(args.sequences)  # on a cluster only the nodes need to see them: a cell reports it
         device = bench_device(args.overrides)
-        report = run_matrix(cells, args.overrides, Path(args.runs), device, not args.quiet, args.profile)
+
+        def save(partial: dict[str, Any]) -> None:
+            write_report(partial, Path(args.out), args.stem)
+
+        report = run_matrix(cells, args.overrides, Path(args.runs), device, not args.quiet, args.profile, save)
     else:
         from pipeline.app.ray_bench import run_matrix_on_ray
         from pipeline.devices import resolve_device

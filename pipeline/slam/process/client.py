@@ -85,6 +85,7 @@ class MappingProcess:
         setup = MappingSetup(
             config, str(device), self.control, self.reader.first, self.heartbeat, self.ring_books,
             self.to_mapping, self.from_mapping, live, max(1, torch.get_num_threads() // 2), self.stop_refining,
+            time.monotonic(),
         )  # fmt: skip
         self.process = context.Process(target=run_mapping_process, args=(setup,), name="gsplatam-mapping", daemon=True)
         with signals_blocked():
@@ -96,6 +97,7 @@ class MappingProcess:
         self.mapped: list[m.FrameMapped] = []  # one per frame handed over and taken, in order
         self.refinement_renders = 0
         self.refinement_s = 0.0
+        self.started_up: m.StartedUp | None = None  # None until the process's loop is ready
         self._requests = itertools.count()
         self._state_replies: dict[int, Future[m.StateSent]] = {}
         self._kernels: Future[m.KernelsSampled] = Future()
@@ -276,6 +278,12 @@ class MappingProcess:
             self.mapped.append(message)
             for loop in message.closed:
                 log.info(closed_loop_line(loop))
+        elif isinstance(message, m.StartedUp):
+            self.started_up = message
+            log.debug(
+                "the mapping process started: interpreter and imports %.1f s, set-up %.1f s",
+                message.interpreter_s, message.setup_s,
+            )  # fmt: skip
         elif isinstance(message, m.Refined):
             self.refinement_renders += message.renders
             self.refinement_s += message.seconds

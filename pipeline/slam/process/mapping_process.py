@@ -59,16 +59,20 @@ class MappingSetup:
     live: bool
     threads: int  # torch's CPU threads in this process
     stop_refining: Any  # a multiprocessing event: set, a final refinement ends at its next step
+    spawned: float  # time.monotonic() when the parent started this process (one clock for both)
 
 
 def run_mapping_process(setup: MappingSetup) -> None:
     """The process's target: the loop until Shutdown; a failure is reported, then raised."""
+    entered = time.monotonic()
     _leave_signals_to_the_parent()
     _end_with_the_parent()
     try:
         torch.set_num_threads(setup.threads)
         importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
-        MappingLoop(setup).run()
+        loop = MappingLoop(setup)
+        setup.outbox.put(m.StartedUp(entered - setup.spawned, time.monotonic() - entered))
+        loop.run()
     except BaseException as exc:
         setup.outbox.put(m.MappingFailed(f"{exc.__class__.__name__}: {exc}\n{traceback.format_exc()}"))
         raise

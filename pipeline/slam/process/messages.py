@@ -147,6 +147,14 @@ class StateSent:
 
 
 @dataclass(frozen=True)
+class StartedUp:
+    """The mapping process's start-up, sent once its loop is ready (monotonic-clock seconds)."""
+
+    interpreter_s: float  # from the spawn to its target running: the interpreter and the imports
+    setup_s: float  # from there to the loop ready: CUDA, the renderers, the backend
+
+
+@dataclass(frozen=True)
 class FrameMapped:
     """What mapping did with a frame handed to it."""
 
