@@ -28,7 +28,7 @@ from pipeline.render import make_renderer
 from pipeline.runtime import Graph, RuntimeReport, Service, execute
 from pipeline.slam.handoff import FrameResult
 from pipeline.slam.kernel_time import KernelSampler
-from pipeline.slam.process.schedule import ProcessSplaTAM
+from pipeline.slam.process.schedule import start_process_slam
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.state import Checkpoint, LoopState
 from pipeline.slam.view import SteppedSlam
@@ -159,10 +159,9 @@ def open_session(
 
 def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSlam:
     """SLAM of the configured schedule: mapping in this process, or in one of its own."""
-    renderer = make_renderer(config.render, config.gaussians, device)
     if config.slam.schedule == "process":
-        return ProcessSplaTAM(config, renderer, device, source.live)
-    return SplaTAM(config, renderer, device)
+        return start_process_slam(config, device, source.live)
+    return SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
 
 
 def _frame_rows(folder: RunFolder, saver: PeriodicSave) -> ResultConsumer:

@@ -14,9 +14,9 @@ from pipeline.config import DatasetConfig, KeyframeConfig, load_config, with_dat
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose
 from pipeline.io.sources.datasets.loader import open_dataset
-from pipeline.render import Gaussians, make_renderer
+from pipeline.render import Gaussians
 from pipeline.slam.keyframes import KeyframeChooser, KeyframePose, grid_pixels, novelty
-from pipeline.slam.process.schedule import ProcessSplaTAM
+from pipeline.slam.process.schedule import ProcessSplaTAM, start_process_slam
 from pipeline.slam.tracking.trackers import TrackResult
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.upload import host_frame_tensors
@@ -101,7 +101,7 @@ def _wall_in_a_run(replica_seq: Path) -> tuple[ProcessSplaTAM, list[DeviceFrame]
         "mapping.refine_pose_lr=1e-3",
     ]  # fmt: skip
     config = with_dataset_defaults(load_config("tiny", overrides=overrides), "replica")
-    slam = ProcessSplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU, live=False)
+    slam = start_process_slam(config, CPU, live=False)
     frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()]
     return slam, frames
 

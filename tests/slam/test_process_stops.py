@@ -36,9 +36,8 @@ from pipeline.io.files.trajectory import read_tum_trajectory
 from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
-from pipeline.render import make_renderer
 from pipeline.slam.process import messages as m
-from pipeline.slam.process.schedule import ProcessSplaTAM
+from pipeline.slam.process.schedule import ProcessSplaTAM, start_process_slam
 from pipeline.slam.process.shared_map import MapReader, SharedMemoryShort, shared_memory_advice
 from pipeline.stages.upload import host_frame_tensors
 
@@ -245,7 +244,7 @@ def test_ctrl_z_then_fg_longer_than_the_timeout_leaves_a_healthy_run_going(
 
 def _process_slam(overrides: list[str], live: bool) -> ProcessSplaTAM:
     config = with_dataset_defaults(load_config("tiny", overrides=FAST + overrides), "replica")
-    return ProcessSplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU, live)
+    return start_process_slam(config, CPU, live)
 
 
 @pytest.mark.slow

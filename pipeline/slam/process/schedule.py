@@ -36,7 +36,7 @@ import torch
 from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
-from pipeline.render import Gaussians, Renderer
+from pipeline.render import Gaussians, Renderer, make_renderer
 from pipeline.slam.gaussian_map import copied, seed_gaussians
 from pipeline.slam.handoff import FrameResult, TrackedFrame
 from pipeline.slam.keyframes import KeyframeChooser, KeyframePose
@@ -52,15 +52,29 @@ log = logging.getLogger("gsplatam")
 HOLD_AFTER_FAILURE_S = 1.0  # how long the newest version is waited for once the mapping process failed
 
 
+def start_process_slam(config: Config, device: torch.device, live: bool) -> ProcessSplaTAM:
+    """SLAM under the process schedule. The mapping process is started first, so that its
+    start-up (an interpreter, torch's and gsplat's imports, CUDA, the renderers: seconds, the
+    larger part of the schedule's warm-up, bench/NOTES.md) overlaps this process's own set-up
+    (the renderer, the tracker) instead of following it."""
+    mapping = MappingProcess(config, device, live)
+    try:
+        return ProcessSplaTAM(config, make_renderer(config.render, config.gaussians, device), device, mapping)
+    except BaseException:
+        mapping.close()
+        raise
+
+
 class ProcessSplaTAM:
-    def __init__(self, config: Config, renderer: Renderer, device: torch.device, live: bool) -> None:
+    def __init__(self, config: Config, renderer: Renderer, device: torch.device, mapping: MappingProcess) -> None:
+        """SLAM over `mapping`, a mapping process started for `config` (`start_process_slam`)."""
         self.config = config
         self.renderer = renderer
         self.device = device
         self._tracker = tracker_for(config, renderer, device)
         self.frontend = TrackingFrontend(self._tracker, config.tracking, device)
         self.chooser = self._new_chooser()
-        self.mapping = MappingProcess(config, device, live)
+        self.mapping = mapping
         self._first_version = 1  # versions from before a warm-up's reset do not count
         self._saved: BackendState | None = None  # the last mapping state received (a checkpoint's)
         self._scene_radius = 0.0  # metres, from the first frame (for a checkpoint without mapping's state)
