@@ -44,6 +44,9 @@ for part in "$@"; do
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
     pace-640)  # issue 34's table: sequential (SplaTAM's reference) and process (keyframe rate) at 640x480
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small --variants sequential,process --stem pace_640 ;;
+    pace-sequential-keyframe)  # the next call: keyframe rate in one thread against both schedules, 640x480
+              bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small \
+                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process --stem pace_sequential_keyframe ;;
     pace-1200) bench synthetic --presets tiny,small --variants sequential,process --stem pace_1200 ;;
     pace-base) bench "$tum" --presets base --variants sequential --stem pace_base_tum ;;
     odometry-cabinet) bench "$cabinet" --presets tiny --variants process,process-odometry \

@@ -137,7 +137,9 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "unmapped_frames": metrics.unmapped_frames,
         "large_steps": steps.steps if steps else None,
         "large_step_error_cm": steps.mean_cm if steps and steps.steps else None,
-        "frames_mapped": process["frames_mapped"] if process else metrics.frames_this_run - metrics.unmapped_frames,
+        "frames_mapped": process["frames_mapped"]
+        if process
+        else metrics.frames_this_run - metrics.unmapped_frames - metrics.between_keyframes,
         "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
         "loops_detected": loops.detected if loops else None,
         "loops_accepted": loops.accepted if loops else None,

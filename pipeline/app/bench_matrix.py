@@ -37,6 +37,8 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-adjust": ("slam.schedule=process", "mapping.adjust_window=5"),  # local bundle adjustment at each keyframe
     "process-adjust-loops": ("slam.schedule=process", "mapping.adjust_window=5", "loops.enabled=true"),
     "process-odometry": ("slam.schedule=process", "tracking.odometry=features"),  # visual odometry's second guess
+    "sequential-keyframe": ("slam.schedule=sequential", "mapping.rate=keyframe"),  # one thread, keyframes only mapped
+    "sequential-keyframe-no-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=0"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),
 }  # fmt: skip
 

@@ -100,6 +100,7 @@ class Session:
             weak_frames=frames.weak_frames,
             relocalised_frames=frames.relocalised_frames,
             unmapped_frames=frames.unmapped_frames,
+            between_keyframes=frames.between_keyframes,
             device=describe(device, config),
             versions=versions(),
             peak_gpu_memory_gb=peak,

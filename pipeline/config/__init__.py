@@ -44,6 +44,7 @@ from pipeline.config.schema import (
     TrackingMethod,
     ViewerConfig,
     ViewerKind,
+    keyframe_rate,
     switched_on,
 )
 
@@ -52,6 +53,6 @@ __all__ = [
     "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LoopConfig",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",
-    "ViewerKind", "switched_on",
+    "ViewerKind", "keyframe_rate", "switched_on",
     "config_keys", "load_config", "parse_overrides", "preset_config", "to_toml", "validate", "with_absolute_dataset_path", "with_dataset_defaults", "with_value",
 ]  # fmt: skip

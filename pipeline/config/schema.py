@@ -14,7 +14,8 @@ RenderBackend = Literal["auto", "gsplat", "reference"]
 LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
-MappingRate = Literal["frame", "keyframe"]
+MappingRate = Literal["auto", "frame", "keyframe"]
+Schedule = Literal["sequential", "process"]
 TrackingMethod = Literal["adam", "align"]
 OdometryKind = Literal["features", "off"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
@@ -25,6 +26,12 @@ PoseUse = Literal["initial_guess", "groundtruth", "ignore"]  # what a source's o
 def switched_on(switch: Switch, cuda: bool) -> bool:
     """A Switch setting: on, off, or auto (on with CUDA)."""
     return switch == "on" or (switch == "auto" and cuda)
+
+
+def keyframe_rate(rate: MappingRate, schedule: Schedule) -> bool:
+    """Whether only keyframes are mapped (`mapping.rate`; auto: under the process schedule only,
+    so that `sequential` stays SplaTAM's order unless asked)."""
+    return rate == "keyframe" or (rate == "auto" and schedule == "process")
 
 
 @dataclass(frozen=True)
@@ -130,8 +137,9 @@ class MappingConfig:
     max_gaussians: int = 0  # the map's bound (0: none); past it the least opaque go, down to 90% of it
     views_per_step: int = 1  # keyframe views rendered together per optimiser step (the same renders in all)
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
-    rate: MappingRate = "keyframe"  # process schedule: keyframe: only keyframes are densified and mapped (chosen on the tracking side by what they add), the rest tracked only; frame: every frame tracked well (sequential always maps every frame)
+    rate: MappingRate = "auto"  # keyframe: only keyframes are densified and mapped (chosen on the tracking side by what they add), the rest tracked only; frame: every frame mapped; auto: keyframe under the process schedule, frame under sequential (SplaTAM's order)
     refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes (in turn the newest one's covisible window and the next of all of them)
+    refine_between: int = 1  # sequential schedule at rate=keyframe: view renders of refinement over the keyframes after each frame between keyframes
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
@@ -216,9 +224,6 @@ class RenderConfig:
     eps2d: float = 0.3  # pixels^2 added to every projected covariance (anti-aliasing floor)
     near: float = 0.01  # near plane, metres
     far: float = 100.0  # far plane, metres
-
-
-Schedule = Literal["sequential", "process"]
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ class FrameLog:
         self.unmapped_frames = (
             0  # tracked but not mapped: lost, or skipped by a live session's mapping (not by design between keyframes)
         )
+        self.between_keyframes = 0  # tracked only, by design (mapping.rate=keyframe)
 
     def add(self, result: FrameResult, arrived_at: float) -> None:
         previous = self.results[-1] if self.results else None
@@ -44,6 +45,7 @@ class FrameLog:
                 log.info("frame %d: tracking weak: %s", result.index, result.warning)
         self.relocalised_frames += result.relocalised_from is not None
         self.unmapped_frames += not result.mapped and not result.between_keyframes
+        self.between_keyframes += result.between_keyframes
         if log.isEnabledFor(logging.DEBUG):  # per frame: the line is built only behind -v
             log.debug("frame %d: %s; tracker: %s", result.index, _stage_times(result), _verdict(result))
 

@@ -100,6 +100,7 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["synthetic.holes=2"], "synthetic.holes must be >= 0 and < 1"),
         (["synthetic.loops=100000"], "synthetic.loops must be 0 to 1000"),
         (["mapping.final_iters=-5"], "mapping.final_iters must be >= 0"),
+        (["mapping.refine_between=-1"], "mapping.refine_between must be >= 0"),
         (["slam.backend_timeout_s=0"], "slam.backend_timeout_s must be > 0"),
         (["mapping.ssim_weight=1.5"], "mapping.ssim_weight must be in [0, 1]"),
         (["loops.min_similarity=-2"], "loops.min_similarity must be in [-1, 1]"),

@@ -1,4 +1,4 @@
-"""Mapping at keyframe rate (`mapping.rate=keyframe`, the process schedule): which frames become
+"""Mapping at keyframe rate (`mapping.rate=keyframe`, either schedule): which frames become
 keyframes by what they add, and a run in which only they are densified and mapped."""
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ from pipeline.config import DatasetConfig, KeyframeConfig, load_config, with_dat
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose
 from pipeline.io.sources.datasets.loader import open_dataset
-from pipeline.render import Gaussians
+from pipeline.render import Gaussians, make_renderer
 from pipeline.slam.keyframes import KeyframeChooser, KeyframePose, grid_pixels, novelty
 from pipeline.slam.process.schedule import ProcessSplaTAM, start_process_slam
+from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.tracking.trackers import TrackResult
 from pipeline.stages.frame_log import FrameLog
 from pipeline.stages.upload import host_frame_tensors
@@ -92,18 +93,21 @@ def test_keyframes_every_bounds_the_gap_between_keyframes() -> None:
     assert not still.reason(wall(), torch.eye(4), 9, 1.0, False) and still.reason(wall(), torch.eye(4), 10, 1.0, False)
 
 
+GAP_ONLY = [  # keyframe rate where only the gap says which frame is a keyframe (every 2nd), fast settings
+    "tracking.iters=3", "mapping.iters=3", "mapping.rate=keyframe", "keyframes.every=2",
+    "keyframes.min_overlap=0", "keyframes.max_translation=1e9", "keyframes.min_coverage=0",
+    "mapping.refine_pose_lr=1e-3",
+]  # fmt: skip
+
+
+def _frames(replica_seq: Path) -> list[DeviceFrame]:
+    return [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()]
+
+
 def _wall_in_a_run(replica_seq: Path) -> tuple[ProcessSplaTAM, list[DeviceFrame]]:
-    """The process schedule at keyframe rate where only the gap says which frame is a keyframe
-    (every 2nd; nothing else a frame adds counts), fast settings, refinement on."""
-    overrides = [
-        "tracking.iters=3", "mapping.iters=3", "mapping.rate=keyframe", "keyframes.every=2",
-        "keyframes.min_overlap=0", "keyframes.max_translation=1e9", "keyframes.min_coverage=0",
-        "mapping.refine_pose_lr=1e-3",
-    ]  # fmt: skip
-    config = with_dataset_defaults(load_config("tiny", overrides=overrides), "replica")
-    slam = start_process_slam(config, CPU, live=False)
-    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()]
-    return slam, frames
+    """The process schedule at keyframe rate (`GAP_ONLY`), refinement on."""
+    config = with_dataset_defaults(load_config("tiny", overrides=GAP_ONLY), "replica")
+    return start_process_slam(config, CPU, live=False), _frames(replica_seq)
 
 
 @pytest.mark.slow
@@ -113,15 +117,7 @@ def test_keyframe_rate_maps_keyframes_only_never_a_lost_frame_and_keeps_a_pose_p
     frame has a pose; each frame between keyframes follows its keyframe's refinement (the final
     refinement moves the keyframes' poses): pose = keyframe now @ inv(keyframe as tracked) @ pose as tracked."""
     slam, frames = _wall_in_a_run(replica_seq)
-    track = slam.frontend.tracker
-
-    def losing_frame_2(
-        gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
-    ) -> TrackResult:
-        result = track(gaussians, frame, c2w_init, large_step)
-        return replace(result, failure="made to fail") if frame.index == 2 else result
-
-    slam.frontend.tracker = losing_frame_2
+    _losing_frame_2(slam)
     log = FrameLog()
     try:
         for frame in frames:
@@ -152,6 +148,46 @@ def test_keyframe_rate_maps_keyframes_only_never_a_lost_frame_and_keeps_a_pose_p
         assert not torch.allclose(poses[4], tracked[4], atol=1e-7)
     finally:
         slam.close()
+
+
+def _losing_frame_2(slam: ProcessSplaTAM | SplaTAM) -> None:
+    """Make the tracker fail on frame 2 (a keyframe is due there)."""
+    track = slam.frontend.tracker
+
+    def losing(
+        gaussians: Gaussians, frame: DeviceFrame, c2w_init: torch.Tensor, large_step: bool = False
+    ) -> TrackResult:
+        result = track(gaussians, frame, c2w_init, large_step)
+        return replace(result, failure="made to fail") if frame.index == 2 else result
+
+    slam.frontend.tracker = losing
+
+
+def test_sequential_at_keyframe_rate_maps_keyframes_only_and_refines_between_them(replica_seq: Path) -> None:
+    """The sequential schedule at keyframe rate: the same keyframes as the process schedule's
+    (0, 3 after the lost frame 2, the last 5), densified only there; each frame between
+    keyframes runs `mapping.refine_between` renders over the keyframes (a new map version, no
+    Gaussian added) and follows its keyframe; `auto` keeps sequential at frame rate."""
+    config = with_dataset_defaults(load_config("tiny", overrides=[*GAP_ONLY, "mapping.refine_between=2"]), "replica")
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+    _losing_frame_2(slam)
+    frames = _frames(replica_seq)
+    results = [slam.step(frame, is_last=frame.index == len(frames) - 1) for frame in frames]
+    assert [bool(r.lost) for r in results] == [False, False, True, False, False, False]
+    assert [r.mapped for r in results] == [True, False, False, True, False, True]
+    assert [r.between_keyframes for r in results] == [False, True, False, False, True, False]
+    assert results[0].added > 0 and all(r.added == 0 for r in results if not r.mapped)
+    assert results[1].map_version > results[0].map_version and results[1].gaussians == results[0].gaussians
+    assert results[2].map_version == results[1].map_version  # the lost frame: neither mapped nor refined
+    checkpoint = slam.checkpoint()
+    assert [k.index for k in checkpoint.keyframes] == [0, 3, 5] and checkpoint.frames_done == len(slam.poses) == 6
+    anchors = slam.frontend.trajectory.anchors
+    assert [None if a is None else a.position for a in anchors] == [None, 0, 0, 0, 3, 3]
+    plain = with_dataset_defaults(load_config("tiny", overrides=["mapping.rate=auto"]), "replica")
+    assert SplaTAM(plain, make_renderer(plain.render, plain.gaussians, CPU), CPU).chooser is None
+    resumed = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+    resumed.restore(checkpoint)  # the gap counts from the newest keyframe restored (5): 6 is between
+    assert resumed.chooser is not None and resumed.chooser.last is not None and resumed.chooser.last.index == 5
 
 
 @pytest.mark.slow

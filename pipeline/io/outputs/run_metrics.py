@@ -203,6 +203,7 @@ class RunMetrics:
     weak_frames: int = 0  # tracked with a warning, still mapped
     relocalised_frames: int = 0
     unmapped_frames: int = 0
+    between_keyframes: int = 0  # tracked only, by design (mapping.rate=keyframe)
     device: str = ""
     versions: dict[str, str | None] = field(default_factory=dict)
     peak_gpu_memory_gb: float | None = None  # None on the CPU

@@ -260,6 +260,14 @@ class MappingBackend:
             self._covisible = (key, older + [len(self.keyframes) - 1])
         return list(self._covisible[1])
 
+    def refine_between(self, renders: int) -> MappedFrame:
+        """Pass on a frame tracked between keyframes (`mapping.rate=keyframe` under the sequential
+        schedule: not densified, not mapped) after a refinement pass of `renders` view renders
+        over the keyframes (`refine`; 0: none), timed as its mapping."""
+        with self.clock.stage("mapping"):
+            self.refine(renders)
+        return self._passed(0, 0.0, self.clock.read().get("mapping", 0.0), False)
+
     def skip(self) -> MappedFrame:
         """Pass a tracked frame on without mapping it (tracking judged it lost)."""
         return self._passed(0, 0.0, 0.0, False)

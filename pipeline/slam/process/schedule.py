@@ -33,7 +33,7 @@ from typing import Any
 
 import torch
 
-from pipeline.config import Config
+from pipeline.config import Config, keyframe_rate
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer, make_renderer
@@ -121,7 +121,8 @@ class ProcessSplaTAM:
 
     def _new_chooser(self) -> KeyframeChooser | None:
         """The tracking side's keyframe choice at `mapping.rate=keyframe`; None: mapping takes every frame."""
-        return KeyframeChooser(self.config.keyframes) if self.config.mapping.rate == "keyframe" else None
+        rate = keyframe_rate(self.config.mapping.rate, self.config.slam.schedule)
+        return KeyframeChooser(self.config.keyframes) if rate else None
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
@@ -267,7 +268,7 @@ class ProcessSplaTAM:
             return 1000 * sum(values) / len(values) if values else None
 
         return {
-            "rate": self.config.mapping.rate,
+            "rate": "keyframe" if self.chooser is not None else "frame",
             "frames_mapped": len(mapped),
             "frames_passed_over": len(reports) - len(mapped),
             "densify_ms": mean_ms([r.densify_s for r in mapped[2:]]),  # as timing_summary: frames 0 and 1 left out
