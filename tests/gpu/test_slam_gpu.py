@@ -8,11 +8,13 @@ import pytest
 import torch
 
 from pipeline.config import SyntheticConfig, load_config, with_dataset_defaults
-from pipeline.frame import Frame
+from pipeline.frame import DeviceFrame, Frame
 from pipeline.geometry import invert_pose, se3_exp
 from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
-from pipeline.render import Camera, RenderOutput
+from pipeline.render import Camera, RenderOutput, make_renderer
 from pipeline.slam.kernels import EAGER, make_kernels
+from pipeline.slam.process.schedule import start_process_slam
+from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.tracking.align_tracker import AlignTracker
 from pipeline.stages.upload import PinnedUploader, host_frame_tensors
 
@@ -103,3 +105,48 @@ def test_the_compiled_losses_equal_the_eager_ones_in_value_and_gradient() -> Non
     assert torch.allclose(m0, m1, rtol=1e-5) and torch.allclose(t0, t1, rtol=1e-5) and torch.equal(p0, p1)
     for g0, g1 in zip(*grads):
         assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-8)
+
+
+def _device_frames(count: int) -> list[DeviceFrame]:
+    poses = trajectory(SyntheticConfig(seed=0), count)
+    frames = []
+    for i, pose in enumerate(poses):
+        upload = host_frame_tensors(_frame(i, pose))
+        frames.append(
+            type(upload)(**{k: (v.to(CUDA) if isinstance(v, torch.Tensor) else v) for k, v in vars(upload).items()})
+        )
+    return frames
+
+
+def test_sequential_at_keyframe_rate_on_the_gpu_maps_keyframes_and_refines_between() -> None:
+    """gsplat's renderer, compiled kernels and graphed mapping: a pose per frame, densified at
+    keyframes only, each frame between them a new (refined) map version, the track close."""
+    config = with_dataset_defaults(
+        load_config("tiny", overrides=["mapping.rate=keyframe", "keyframes.every=3"]), "replica"
+    )
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CUDA), CUDA)
+    frames = _device_frames(8)
+    results = [slam.step(frame, is_last=frame.index == len(frames) - 1) for frame in frames]
+    assert not any(r.lost for r in results) and len(slam.poses) == len(frames)
+    assert results[0].mapped and results[-1].mapped and any(r.between_keyframes for r in results)
+    assert all(r.added == 0 and not r.mapped for r in results if r.between_keyframes)
+    versions = [r.map_version for r in results]
+    assert versions == sorted(versions) and len(set(versions)) == len(versions)  # every frame publishes
+    for pose, frame in zip(slam.poses, frames):
+        assert float(torch.linalg.norm(pose[:3, 3].cpu() - frame.c2w_gt[:3, 3].cpu())) < 0.02
+
+
+def test_the_process_schedule_warms_its_tracker_while_mapping_starts() -> None:
+    """On CUDA the tracker's first call is made on the first frame, beside the mapping process's
+    start-up, and the start is reported in parts."""
+    config = with_dataset_defaults(load_config("tiny", overrides=["slam.schedule=process"]), "replica")
+    slam = start_process_slam(config, CUDA, live=False)
+    try:
+        frames = _device_frames(3)
+        results = [slam.step(frame, is_last=frame.index == 2) for frame in frames]
+        assert not any(r.lost for r in results)
+        slam.finish(0)
+        start = slam.mapping_summary()["start_up"]
+        assert all(value is not None and value > 0 for value in start.values()), start
+    finally:
+        slam.close()
