@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.app.report import versions  # noqa: E402
 from pipeline.geometry import se3_exp  # noqa: E402
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.render.types import Camera, Gaussians  # noqa: E402
 from pipeline.slam.cuda_graphs import record  # noqa: E402
 from pipeline.slam.kernel_time import union_ms  # noqa: E402
@@ -141,7 +142,7 @@ def main() -> None:
         "size": f"{WIDTH}x{HEIGHT}",
         "rows": rows,
     }
-    (args.out / "capture_cost.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write_text(args.out / "capture_cost.json", json.dumps(report, indent=2) + "\n")
 
 
 if __name__ == "__main__":

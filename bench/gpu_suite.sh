@@ -83,6 +83,9 @@ for part in "$@"; do
                 for f in frames.csv metrics.json profile.txt; do cp /tmp/diag/$sched/$f "$out/diagnose_${sched}_$f" 2>/dev/null; done
               done ;;
     syncs) python3 bench/sync_points.py --out "$out" --preset tiny --frames 30 2>&1 | grep -v Warning | tail -n 40 ;;
+    syncs-process)  # issue 34: the host waits left in tracking at keyframe rate (the tracking process's; 640x480)
+              python3 bench/sync_points.py --out "$out" --preset tiny --frames 60 --stem sync_points_tiny_process \
+                --set slam.schedule=process --set synthetic.width=640 --set synthetic.height=480 2>&1 | grep -v Warning | tail -n 25 ;;
     costs) python3 bench/iteration_costs.py --out "$out" 2>&1 | grep -v "^gsplatam" | tail -n 45 ;;
     tracker) bench synthetic synthetic-fast synthetic-tum "$tum" --presets tiny,small --variants adam,align,align-refine --stem tracker
              bench synthetic synthetic-fast synthetic-tum "$tum" --presets base --variants adam --stem tracker_base

@@ -30,6 +30,7 @@ from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
 from pipeline.devices import resolve_device
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.io.sources.datasets.synthetic import default_intrinsics
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, as_leaves, copied
@@ -212,7 +213,7 @@ def main() -> None:
         **results,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "iteration_costs.json").write_text(json.dumps(report, indent=1) + "\n")
+    atomic_write_text(args.out / "iteration_costs.json", json.dumps(report, indent=1) + "\n")
     print(json.dumps(report, indent=1))
 
 

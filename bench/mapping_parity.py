@@ -18,6 +18,7 @@ import torch
 from pipeline.app.report import versions
 from pipeline.config import GaussianConfig, RenderConfig
 from pipeline.geometry import invert_pose
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.render import Camera, Gaussians, make_renderer, make_views_renderer
 from pipeline.slam.mapping.optimizers import SelectiveAdamReference, make_map_optimizer
 
@@ -96,7 +97,7 @@ def main() -> None:
     print(json.dumps(result, indent=2))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "mapping_parity.json").write_text(json.dumps(result, indent=2) + "\n")
+    atomic_write_text(out / "mapping_parity.json", json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":

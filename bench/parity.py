@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.app.report import versions  # noqa: E402
 from pipeline.geometry import invert_pose  # noqa: E402
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.render.reference import SMOOTH, render_reference  # noqa: E402
 from pipeline.render.types import Camera, Gaussians  # noqa: E402
 from tests.gpu.gpu_scenes import TOLERANCE, leaves, loss_of, random_pose, random_scene, rel  # noqa: E402
@@ -221,7 +222,7 @@ def main() -> None:
         "cases": cases,
         "timings": [] if args.skip_timings else timings(device),
     }
-    (args.out / "parity.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write_text(args.out / "parity.json", json.dumps(report, indent=2) + "\n")
     print(json.dumps({"worst": worst, "passed": passed}, indent=2))
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from pipeline.app.report import versions
 from pipeline.config import DatasetConfig, LiveConfig, SyntheticConfig
 from pipeline.frame import Frame
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.io.sources.datasets.base import Dataset
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
@@ -89,7 +90,7 @@ def main() -> None:
     report = {"rows": rows, "versions": {**versions(), "aiortc": aiortc.__version__, "av": av.__version__}}
     report["machine"] = f"{platform.machine()} CPU (codec runs on the CPU)"
     out = Path(args.out)
-    (out / "record3d_depth.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write_text(out / "record3d_depth.json", json.dumps(report, indent=2) + "\n")
     lines = [
         "# Record3D depth through the aiortc H.264 loopback",
         "",
@@ -106,7 +107,7 @@ def main() -> None:
             f"| {r['size']} | {r['frames_received']} / {r['frames_sent']} | {r['median_mm']:.1f} mm | {r['p95_mm']:.1f} mm | "
             f"{r['mean_mm']:.1f} mm | {r['kept_fraction']:.1%} |"
         )
-    (out / "record3d_depth.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "record3d_depth.md", "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.app.report import versions
+from pipeline.io.files.atomic import atomic_write_text
 from pipeline.slam import losses
 from pipeline.slam.kernels import mapping_loss
 
@@ -82,7 +83,7 @@ def main() -> None:
         losses.ssim_map = current
     report = {"device": torch.cuda.get_device_name(), "versions": versions(), "size": shape, "results": results}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "ssim_blur.json").write_text(json.dumps(report, indent=1) + "\n")
+    atomic_write_text(args.out / "ssim_blur.json", json.dumps(report, indent=1) + "\n")
     print(json.dumps(report, indent=1))
 
 

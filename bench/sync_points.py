@@ -6,7 +6,7 @@ Runs the embedded synthetic room with CUDA's sync debug mode on; each synchronis
 Python stack names the caller. Counts divided by the frames run give syncs per frame; lines
 counted once or twice are start-up (compilation, the first frame).
 
-    python bench/sync_points.py --out bench/results [--preset tiny] [--frames 30]
+    python bench/sync_points.py --out bench/results [--preset tiny] [--frames 30] [--set KEY=VALUE ...] [--stem NAME]
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
 from pipeline.devices import resolve_device
+from pipeline.io.files.atomic import atomic_write_text
 
 OURS = ("/pipeline/", "/gsplat/")
 
@@ -48,8 +49,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--preset", default="tiny")
     parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--stem", help="the JSON file's name (default: sync_points_<preset>)")
     args = parser.parse_args()
-    config = load_config(args.preset, overrides=[f"synthetic.frames={args.frames}"])
+    config = load_config(args.preset, overrides=[f"synthetic.frames={args.frames}", *args.overrides])
     config = with_value(config, "run.output", "/tmp/sync_points")
 
     counts: Counter[str] = Counter()
@@ -73,12 +76,15 @@ def main() -> None:
         "device": torch.cuda.get_device_name(),
         "versions": versions(),
         "preset": args.preset,
+        "overrides": args.overrides,
         "frames": frames,
         "syncs_per_frame": sum(counts.values()) / frames,
         "rows": rows,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"sync_points_{args.preset}.json").write_text(json.dumps(report, indent=1) + "\n")
+    atomic_write_text(
+        args.out / f"{args.stem or 'sync_points_' + args.preset}.json", json.dumps(report, indent=1) + "\n"
+    )
     print(f"{report['syncs_per_frame']:.1f} synchronising calls per frame over {frames} frames")
     for row in rows:
         print(f"{row['per_frame']:7.2f}  {row['where']}")

@@ -22,6 +22,7 @@ from pipeline.app.report import versions
 from pipeline.app.run import run_slam
 from pipeline.config import load_config, with_value
 from pipeline.devices import resolve_device
+from pipeline.io.files.atomic import atomic_write_text
 
 
 class ViserClient(threading.Thread):
@@ -113,7 +114,7 @@ def main() -> None:
         print(row)
     report = {"rows": rows, "versions": versions()}
     out = Path(args.out)
-    (out / "viewer.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write_text(out / "viewer.json", json.dumps(report, indent=2) + "\n")
     import torch
 
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "CPU"
@@ -137,7 +138,7 @@ def main() -> None:
             f"| {r['mapping_ms']:.1f} | {r['fps_steady']:.2f} | {100 * r['slowdown_wall']:+.1f}% | {r['ate_cm']:.2f} cm "
             f"| {r.get('messages', '')} | {r.get('megabytes', 0):.1f} |"
         )
-    (out / "viewer.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "viewer.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
