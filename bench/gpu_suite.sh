@@ -46,7 +46,7 @@ for part in "$@"; do
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small --variants sequential,process --stem pace_640 ;;
     pace-sequential-keyframe)  # the next call: keyframe rate in one thread against both schedules, 640x480
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small \
-                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process --stem pace_sequential_keyframe ;;
+                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process,process-eager-render --stem pace_sequential_keyframe ;;
     drift-odometry-loops)  # issue 35 (carry .device, .data/tum_fr3_cabinet_kf57 and .whl-loops: 56 MB)
               bench "$cabinet" --presets tiny --variants process,process-odometry,process-odometry-loops \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_odometry_loops_cabinet ;;

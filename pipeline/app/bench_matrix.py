@@ -39,6 +39,7 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-odometry": ("slam.schedule=process", "tracking.odometry=features"),  # visual odometry's second guess
     "sequential-keyframe": ("slam.schedule=sequential", "mapping.rate=keyframe"),  # one thread, keyframes only mapped
     "sequential-keyframe-no-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=0"),
+    "process-eager-render": ("slam.schedule=process", "tracking.align_fixed_capacity=off"),  # gsplat's own tracking render
     "process-odometry-loops": ("slam.schedule=process", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),
 }  # fmt: skip

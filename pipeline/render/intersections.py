@@ -24,6 +24,14 @@ import torch
 
 from pipeline.render.intersect_kernel import intersect_kernel
 
+INTERSECTION_QUANTUM = 1 << 16  # a fixed-capacity render's first capacity, and the step it grows by
+CAPACITY_HEADROOM = 1.5  # a grown capacity holds this many times the largest count seen
+
+
+def grown_capacity(count: int, quantum: int) -> int:
+    """The capacity for `count` intersections with headroom, in whole steps of `quantum`."""
+    return max(quantum, math.ceil(CAPACITY_HEADROOM * count / quantum) * quantum)
+
 
 @dataclass(frozen=True)
 class TileGrid:

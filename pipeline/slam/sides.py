@@ -20,7 +20,10 @@ def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tra
     cuda = device.type == "cuda"
     kernels = make_kernels(switched_on(config.run.compile, cuda))
     near, far = config.render.near, config.render.far
-    return make_tracker(TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda))
+    capacity_renderer = make_capacity_renderer(config.render, config.gaussians, device)
+    return make_tracker(
+        TrackSettings(renderer, config.tracking, config.loss, near, far, kernels, cuda, capacity_renderer)
+    )
 
 
 def backend_settings(config: Config, renderer: Renderer, device: torch.device) -> BackendSettings:

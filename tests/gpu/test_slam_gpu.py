@@ -11,7 +11,8 @@ from pipeline.config import SyntheticConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame, Frame
 from pipeline.geometry import invert_pose, se3_exp
 from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
-from pipeline.render import Camera, RenderOutput, make_renderer
+from pipeline.render import Camera, RenderOutput, make_capacity_renderer, make_renderer
+from pipeline.slam.gaussian_map import seed_gaussians
 from pipeline.slam.kernels import EAGER, make_kernels
 from pipeline.slam.process.schedule import start_process_slam
 from pipeline.slam.splatam import SplaTAM
@@ -150,3 +151,23 @@ def test_the_process_schedule_warms_its_tracker_while_mapping_starts() -> None:
         assert all(value is not None and value > 0 for value in start.values()), start
     finally:
         slam.close()
+
+
+def test_the_tracker_at_a_fixed_capacity_equals_gsplats_own_render() -> None:
+    """gsplat's kernels around our intersection list, at a capacity that overflows first: the
+    align tracker's pose equals the one from gsplat's eager render."""
+    config = with_dataset_defaults(load_config("tiny"), "replica")
+    frames = _device_frames(2)
+    first, second = frames
+    start = first.c2w_gt.float()
+    seeded = seed_gaussians(first.color, first.depth, first.intrinsics, start, first.depth > 0, config.gaussians)
+    near, far = config.render.near, config.render.far
+    renderer = make_renderer(config.render, config.gaussians, CUDA)
+    plain = AlignTracker(renderer, config.tracking, near, far)(seeded, second, start)
+    capacity_renderer = make_capacity_renderer(config.render, config.gaussians, CUDA)
+    fixed_tracker = AlignTracker(
+        renderer, config.tracking, near, far, capacity_renderer=capacity_renderer, capacity=1024
+    )
+    fixed = fixed_tracker(seeded, second, start)
+    assert fixed_tracker.capacity > 1024 and fixed.failure == plain.failure
+    assert torch.allclose(fixed.c2w, plain.c2w, atol=1e-4)

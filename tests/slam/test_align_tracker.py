@@ -16,7 +16,7 @@ from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
 from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.metrics import absolute_trajectory_error
-from pipeline.render import Camera, Gaussians, RenderOutput, make_renderer
+from pipeline.render import Camera, Gaussians, RenderOutput, make_capacity_renderer, make_renderer
 from pipeline.slam.gaussian_map import seed_gaussians
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.tracking.align_tracker import AlignTracker, fitting_schedule
@@ -266,7 +266,7 @@ def test_the_iteration_traces_as_one_graph_that_matches_the_eager_one() -> None:
     GPU's fused kernels) is compared with eager on the GPU by bench/align_cost.py."""
     tracker = AlignTracker(stub_renderer(PATTERN, WALL), tiny_settings(None, "align").config, 0.01, 100.0)
     frame = frame_of(torch.roll(PATTERN, 1, dims=1), WALL * 1.01, SMALL_K)  # a little off: steps to take
-    sources, targets = tracker.prepare(frame, tracker._render(None, frame, torch.eye(4)))
+    sources, targets = tracker.prepare(frame, tracker._render(None, frame, torch.eye(4))[0])
     compiled = torch.compile(lm_iteration, backend="eager", fullgraph=True, dynamic=False)
     eager = lm_start(torch.eye(4, dtype=torch.float64))
     fast = eager
@@ -300,3 +300,34 @@ def test_tiny_with_align_beats_adam_on_a_fast_sequence(tmp_path) -> None:
         outcome[method] = (absolute_trajectory_error(estimate, reference).rmse_m, sum(bool(r.lost) for r in results))
     assert outcome["align"][1] == 0
     assert outcome["align"][0] < outcome["adam"][0]
+
+
+def test_the_fixed_capacity_render_tracks_as_the_plain_one_and_grows_past_an_overflow() -> None:
+    """A map seeded from the start view, the frame 1 cm and 1 degree away: tracked with the
+    reference renderer at a capacity far below the render's intersections (the first pass
+    overflows, runs again at a grown capacity) the pose equals the plain render's; at a capacity
+    that holds them, no pass runs twice."""
+    config = with_dataset_defaults(load_config("tiny"), "replica")
+    k = torch.from_numpy(default_intrinsics(WIDTH, HEIGHT)).float()
+    c2w_init = torch.from_numpy(START).float()
+    color, depth = ray_cast(START)
+    seeded = seed_gaussians(color, depth, k, c2w_init, depth > 0, config.gaussians)
+    frame = frame_of(*ray_cast(START @ motion(0.01, 1.0, 1)))
+    renderer = make_renderer(config.render, config.gaussians, CPU)
+    capacity_renderer = make_capacity_renderer(config.render, config.gaussians, CPU)
+    near, far = config.render.near, config.render.far
+    plain = AlignTracker(renderer, config.tracking, near, far)(seeded, frame, c2w_init)
+    passes: list[int] = []
+
+    def counted(gaussians: Gaussians, cameras: list[Camera], capacity: int):  # type: ignore[no-untyped-def]
+        passes.append(capacity)
+        return capacity_renderer(gaussians, cameras, capacity)  # type: ignore[misc]
+
+    small = AlignTracker(renderer, config.tracking, near, far, capacity_renderer=counted, capacity=64)
+    fixed = small(seeded, frame, c2w_init)
+    assert passes[0] == 64 and passes[1] > 64 and small.capacity == passes[-1]
+    assert fixed.failure == plain.failure and torch.allclose(fixed.c2w, plain.c2w, atol=1e-5)
+    passes.clear()
+    again = small(seeded, frame, c2w_init)
+    assert passes and all(p == small.capacity for p in passes)  # no overflow: each render once, at the grown capacity
+    assert torch.allclose(again.c2w, plain.c2w, atol=1e-5)

@@ -26,6 +26,7 @@ import torch
 from pipeline.config import LossConfig, MappingConfig
 from pipeline.geometry import invert_pose
 from pipeline.render import Camera, CapacityRenderer, Gaussians
+from pipeline.render.intersections import INTERSECTION_QUANTUM, grown_capacity
 from pipeline.slam.cuda_graphs import record
 from pipeline.slam.gaussian_map import PARAMETER_NAMES, prune_mask
 from pipeline.slam.kernels import SlamKernels
@@ -33,8 +34,6 @@ from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.mapping.optimizers import EPS, learning_rates
 
 ROW_QUANTUM = 1 << 16  # Gaussian rows grow in steps of this many
-INTERSECTION_QUANTUM = 1 << 16  # intersection capacity: the first, and the step it grows by
-HEADROOM = 1.5  # a new capacity holds this many times the largest count seen
 INERT_OPACITY_LOGIT = -20.0  # opacity 2e-9: under gsplat's 1/255, never drawn
 
 
@@ -94,7 +93,7 @@ class CapturedMapping:
             result, peak = self._pass(gaussians, views, intrinsics, scene_radius, rng, iters, on_step, should_stop)
             if peak <= self.capacity:
                 return result
-            self.capacity = _rounded_up(HEADROOM * peak, INTERSECTION_QUANTUM)
+            self.capacity = grown_capacity(peak, INTERSECTION_QUANTUM)
             rng.setstate(state)
 
     def _pass(

@@ -14,7 +14,8 @@ import torch
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, motion_extent, pose_matrix, rotmat_to_quat
-from pipeline.render import Camera, Gaussians, Renderer, RenderOutput
+from pipeline.render import Camera, CapacityRenderer, Gaussians, Renderer, RenderOutput, TileIntersections
+from pipeline.render.intersections import INTERSECTION_QUANTUM, grown_capacity
 from pipeline.slam.cuda_graphs import GraphCache
 from pipeline.slam.tracking.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
@@ -194,10 +195,17 @@ class AlignTracker:
         far: float,
         iteration: AlignIteration = lm_iteration,
         capture: bool = False,
+        capacity_renderer: CapacityRenderer | None = None,
+        capacity: int = INTERSECTION_QUANTUM,
     ) -> None:
-        """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py)."""
+        """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py).
+        `capacity_renderer`: render at a fixed intersection capacity (starting at `capacity`),
+        so that the render never waits for the host to read the intersection count back (as
+        gsplat's own does); the count is read after the solve's statistics, and a pass whose
+        intersections overflowed runs again with the capacity grown."""
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
         self.capture = capture
+        self.capacity_renderer, self.capacity = capacity_renderer, capacity
         self.params = level_params(config, len(config.align_iters))
         self._solvers: dict[tuple[int, ...], Callable[..., tuple[LmState, torch.Tensor]]] = {}
         self._warmed = not capture  # eager solves need no warm-up
@@ -229,13 +237,15 @@ class AlignTracker:
     ) -> Pass:
         """Render at `c2w_render`, solve over `schedule`; a failed solve is tried once more over
         `wide_schedule` with `align_recovery_iters` at its coarsest level (a wider basin)."""
-        rendered = self._render(gaussians, frame, c2w_render)
+        rendered, hits = self._render(gaussians, frame, c2w_render)
         images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
         recovery = (self.config.align_recovery_iters, *wide_schedule[1:])
         if not self._warmed:
             self._warm_up(images, (wide_schedule, recovery))
         state, valid = self._solver(schedule)(*images)
         report = read_report(state, valid)
+        if hits is not None and self._overflowed(hits):  # read after the report's: the GPU is done by then
+            return self._pass(gaussians, frame, c2w_render, schedule, wide_schedule)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
             retry, _ = self._solver(recovery)(*images)
@@ -280,10 +290,25 @@ class AlignTracker:
         sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
         return self.solve(sources, targets, schedule), sources[0].valid
 
-    def _render(self, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor) -> RenderOutput:
+    def _render(
+        self, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor
+    ) -> tuple[RenderOutput, TileIntersections | None]:
+        """The map at camera-to-world `c2w` [4, 4], with its intersections where they are at a
+        fixed capacity (None: gsplat's own render, which sized them from the count it read)."""
         camera = Camera(invert_pose(c2w), frame.intrinsics, frame.width, frame.height, self.near, self.far)
         with torch.no_grad():
-            return self.renderer(gaussians, camera)
+            if self.capacity_renderer is None:
+                return self.renderer(gaussians, camera), None
+            outputs, hits = self.capacity_renderer(gaussians, [camera], self.capacity)
+            return outputs[0], hits
+
+    def _overflowed(self, hits: TileIntersections) -> bool:
+        """Whether the render lost intersections; if so the capacity grows to hold them."""
+        count = int(hits.count)
+        if count <= hits.capacity:
+            return False
+        self.capacity = grown_capacity(count, INTERSECTION_QUANTUM)
+        return True
 
     def prepare(self, frame: DeviceFrame, rendered: RenderOutput) -> tuple[list[SourcePoints], list[TargetMaps]]:
         """The frame's pyramid as points in its own camera and the render's as maps, finest first

@@ -11,7 +11,7 @@ import torch
 from pipeline.config import LossConfig, TrackingConfig, switched_on
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
-from pipeline.render import Camera, Gaussians, Renderer
+from pipeline.render import Camera, CapacityRenderer, Gaussians, Renderer
 from pipeline.slam.kernels import EAGER, SlamKernels
 from pipeline.slam.tracking.align_tracker import AlignTracker
 
@@ -27,6 +27,7 @@ class TrackSettings:
     far: float
     kernels: SlamKernels = EAGER
     cuda: bool = False  # the frames are on a CUDA device (the align solve can then be graph-recorded)
+    capacity_renderer: CapacityRenderer | None = None  # align: the fixed-capacity render, where there is one
 
 
 @dataclass
@@ -56,8 +57,9 @@ def make_tracker(settings: TrackSettings) -> Tracker:
     if config.method == "adam":
         return partial(track, settings=settings)
     capture = switched_on(config.align_graph, settings.cuda)
+    fixed = settings.capacity_renderer if switched_on(config.align_fixed_capacity, settings.cuda) else None
     aligner = AlignTracker(
-        settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration, capture
+        settings.renderer, config, settings.near, settings.far, settings.kernels.align_iteration, capture, fixed
     )
     refine = replace(settings, config=replace(config, iters=config.refine_iters))
     return partial(track_aligned, aligner=aligner, refine=refine)
