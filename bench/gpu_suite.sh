@@ -44,9 +44,11 @@ for part in "$@"; do
     capture-cost) python3 bench/capture_cost.py --out "$out" 2>&1 | grep -v Warning | tail -n 12 ;;
     pace-640)  # issue 34's table: sequential (SplaTAM's reference) and process (keyframe rate) at 640x480
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small --variants sequential,process --stem pace_640 ;;
-    pace-sequential-keyframe)  # the next call: keyframe rate in one thread against both schedules, 640x480
-              bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small \
-                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process,process-eager-render --stem pace_sequential_keyframe ;;
+    pace-sequential-keyframe-tiny|pace-sequential-keyframe-small)  # keyframe rate in one thread, both schedules, the tracking render; 640x480
+              preset=${part##*-}
+              bench "$tum" synthetic-tum synthetic-640x480 --presets "$preset" \
+                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process,process-eager-render \
+                --stem "pace_sequential_keyframe_$preset" ;;
     drift-odometry-loops)  # issue 35 (carry .device, .data/tum_fr3_cabinet_kf57 and .whl-loops: 56 MB)
               bench "$cabinet" --presets tiny --variants process,process-odometry,process-odometry-loops \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_odometry_loops_cabinet ;;
