@@ -5,11 +5,12 @@ by what they add (`KeyframeChooser`)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import torch
 
-from pipeline.config import KeyframeConfig
+from pipeline.config import Config, KeyframeConfig, keyframe_rate
 from pipeline.frame import DeviceFrame
 from pipeline.geometry import backproject, invert_pose, pixel_grid, project
 
@@ -214,5 +215,17 @@ class KeyframeChooser:
         return ""
 
     def kept(self, keyframe: KeyframePose) -> None:
-        """Mapping took this keyframe: the next frames are measured against it."""
-        self.last = keyframe
+        """Mapping took this keyframe: the next frames are measured against it (a copy of its
+        pose, never a tensor that changes under it: a row of a map version's stack)."""
+        self.last = replace(keyframe, c2w=keyframe.c2w.clone())
+
+    def resumed(self, keyframes: Sequence[KeyframePose]) -> None:
+        """After a restore: the next keyframe is measured against the newest of `keyframes`."""
+        if keyframes:
+            self.kept(max(keyframes, key=lambda k: k.position))
+
+
+def chooser_for(config: Config) -> KeyframeChooser | None:
+    """The keyframe choice where only keyframes are mapped (`mapping.rate`, `keyframe_rate`);
+    None: every frame is."""
+    return KeyframeChooser(config.keyframes) if keyframe_rate(config.mapping.rate, config.slam.schedule) else None

@@ -11,11 +11,11 @@ from typing import Any
 
 import torch
 
-from pipeline.config import Config, keyframe_rate
+from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer
 from pipeline.slam.handoff import FrameResult
-from pipeline.slam.keyframes import KeyframeChooser, KeyframePose
+from pipeline.slam.keyframes import KeyframePose, chooser_for
 from pipeline.slam.mapping.backend import MappingBackend
 from pipeline.slam.sides import backend_settings, loop_closer_for, tracker_for
 from pipeline.slam.state import Checkpoint
@@ -39,8 +39,7 @@ class SplaTAM:
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
         loops = loop_closer_for(self.config, self._backend_settings)
         self.backend = MappingBackend(self._backend_settings, loops, self.device)
-        rate = keyframe_rate(self.config.mapping.rate, self.config.slam.schedule)
-        self.chooser = KeyframeChooser(self.config.keyframes) if rate else None  # None: every frame mapped
+        self.chooser = chooser_for(self.config)  # None: every frame mapped
         self._passed_mark: TrackerMark | None = None  # the tracking side's state as of the last frame mapping passed
 
     @property
@@ -72,7 +71,7 @@ class SplaTAM:
             why = self.chooser.reason(frame, tracked.c2w, tracked.position, result.coverage, is_last)
             result.between_keyframes = not why
             if why:
-                self.chooser.kept(KeyframePose(frame.index, tracked.c2w.clone(), tracked.position))
+                self.chooser.kept(KeyframePose(frame.index, tracked.c2w, tracked.position))
                 mapped = self.backend.map(replace(tracked, keyframe=True), is_last)
             else:
                 mapped = self.backend.refine_between(self.config.mapping.refine_between)
@@ -130,6 +129,5 @@ class SplaTAM:
         self.backend.restore(saved.mapping)
         self._passed_mark = self.frontend.mark()
         self.frontend.trajectory.follow([k.pose for k in self.backend.keyframes])
-        if self.chooser is not None and self.backend.keyframes:  # the next keyframe is measured against the newest
-            newest = max(self.backend.keyframes, key=lambda k: k.pose.position)
-            self.chooser.kept(replace(newest.pose, c2w=newest.c2w.clone()))
+        if self.chooser is not None:
+            self.chooser.resumed([k.pose for k in self.backend.keyframes])

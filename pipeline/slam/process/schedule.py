@@ -33,13 +33,13 @@ from typing import Any
 
 import torch
 
-from pipeline.config import Config, keyframe_rate
+from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.render import Gaussians, Renderer, make_renderer
 from pipeline.slam.gaussian_map import copied, seed_gaussians
 from pipeline.slam.handoff import FrameResult, TrackedFrame
-from pipeline.slam.keyframes import KeyframeChooser, KeyframePose
+from pipeline.slam.keyframes import KeyframePose, chooser_for
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.mapping.backend import scene_radius_of
 from pipeline.slam.process.client import MappingProcess
@@ -73,7 +73,7 @@ class ProcessSplaTAM:
         self.device = device
         self._tracker = tracker_for(config, renderer, device)
         self.frontend = TrackingFrontend(self._tracker, config.tracking, device)
-        self.chooser = self._new_chooser()
+        self.chooser = chooser_for(self.config)
         self.mapping = mapping
         self._first_version = 1  # versions from before a warm-up's reset do not count
         self._saved: BackendState | None = None  # the last mapping state received (a checkpoint's)
@@ -118,11 +118,6 @@ class ProcessSplaTAM:
     def stop_waiting(self) -> None:
         """Wait for the mapping process no more: what is complete is used (a second signal)."""
         self.mapping.stop_waiting()
-
-    def _new_chooser(self) -> KeyframeChooser | None:
-        """The tracking side's keyframe choice at `mapping.rate=keyframe`; None: mapping takes every frame."""
-        rate = keyframe_rate(self.config.mapping.rate, self.config.slam.schedule)
-        return KeyframeChooser(self.config.keyframes) if rate else None
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
@@ -179,7 +174,7 @@ class ProcessSplaTAM:
         if not why or not self.mapping.hand_over(frame, c2w, position, is_last, keyframe=True):
             return False
         log.debug("frame %d is a keyframe: %s", frame.index, why)
-        self.chooser.kept(KeyframePose(frame.index, c2w.clone(), position))
+        self.chooser.kept(KeyframePose(frame.index, c2w, position))
         return True
 
     def warm_up(self, frame: DeviceFrame) -> None:
@@ -193,7 +188,7 @@ class ProcessSplaTAM:
         self._first_version = self.mapping.newest_version() + 1
         self.mapping.reader.release()
         self.frontend = TrackingFrontend(self._tracker, self.config.tracking, self.device)
-        self.chooser = self._new_chooser()
+        self.chooser = chooser_for(self.config)
 
     def checkpoint(self) -> Checkpoint:
         """Every frame tracked, with mapping's state as of now (a round trip to the mapping
@@ -236,9 +231,8 @@ class ProcessSplaTAM:
         self._first_version = self.mapping.newest_version()
         keyframes = self.mapping.hold_newest(self._first_version).keyframes
         self.frontend.trajectory.follow(keyframes)
-        if self.chooser is not None and keyframes:  # the next keyframe is measured against the newest restored
-            newest = max(keyframes, key=lambda k: k.position)
-            self.chooser.kept(replace(newest, c2w=newest.c2w.clone()))  # not a row of the version's stack
+        if self.chooser is not None:
+            self.chooser.resumed(keyframes)
 
     def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """Let mapping take every frame handed to it, then refine (`final_renders` view renders

@@ -47,6 +47,11 @@ class AlignResult:
     motion: torch.Tensor
 
 
+def is_large_step(moved_m: float, moved_deg: float, config: TrackingConfig) -> bool:
+    """Whether a camera motion (metres, degrees) is large: over `align_large_step_m` or `_deg`."""
+    return moved_m > config.align_large_step_m or moved_deg > config.align_large_step_deg
+
+
 @dataclass(frozen=True)
 class SolveReport:
     """A solve's statistics on the host (one read per attempt)."""
@@ -61,8 +66,8 @@ class SolveReport:
     moved_deg: float = 0.0  # and turned it, degrees
 
     def large(self, config: TrackingConfig) -> bool:
-        """Whether the solve moved the camera far (`align_large_step_m`, `_deg`) from the render's pose."""
-        return self.moved_m > config.align_large_step_m or self.moved_deg > config.align_large_step_deg
+        """Whether the solve moved the camera far from the render's pose (`is_large_step`)."""
+        return is_large_step(self.moved_m, self.moved_deg, config)
 
     def failure(self, config: TrackingConfig) -> str:
         """Empty when the solve looks sound, else the first reason it does not."""

@@ -31,6 +31,7 @@ from pipeline.slam.keyframes import KeyframePose, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.state import FrontendState
 from pipeline.slam.timing import StageClock
+from pipeline.slam.tracking.align_tracker import is_large_step
 from pipeline.slam.tracking.trackers import Tracker
 from pipeline.slam.tracking.trajectory import TrackingState, Trajectory
 
@@ -252,8 +253,7 @@ class TrackingFrontend:
         an older pose)."""
         if self._last_c2w is not None:
             moved_m, moved_deg = motion_extent(invert_pose(self._last_c2w) @ c2w).tolist()
-            large = moved_m > self.config.align_large_step_m or moved_deg > self.config.align_large_step_deg
-            self._large_step = large or state is TrackingState.LOST
+            self._large_step = is_large_step(moved_m, moved_deg, self.config) or state is TrackingState.LOST
         self._last_c2w = c2w
 
     def _attempt(
