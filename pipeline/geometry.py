@@ -99,7 +99,7 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
 
 def constant_velocity(c2w_prev2: torch.Tensor, c2w_prev: torch.Tensor, fraction: float = 1.0) -> torch.Tensor:
     """Predict the next camera-to-world [4, 4] by repeating the last relative motion, or
-    `fraction` (in [0, 1]) of it when the next frame is that much nearer in time."""
+    `fraction` of it when the next frame is that much nearer in time (or, above 1, further)."""
     motion = invert_pose(c2w_prev2) @ c2w_prev
     if fraction != 1.0:
         motion = motion_fraction(motion, fraction)

@@ -16,6 +16,7 @@ from pipeline.config import DatasetConfig, TrackingConfig
 from pipeline.frame import Frame, FrameMotion, ImageFeatures
 from pipeline.geometry import motion_extent
 from pipeline.io.sources.datasets.loader import open_dataset
+from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.tracking.frontend import TrackingFrontend
 from pipeline.slam.tracking.odometry import detector, extract_features, relative_motion
 from pipeline.stages.odometry import FeatureDecode, OdometryUpload
@@ -143,17 +144,42 @@ def test_tracking_ignores_odometry_that_is_off_or_from_a_frame_it_did_not_track(
         torch.testing.assert_close(tracker.guesses[1], shifted(0.02))  # the last good pose, as without odometry
 
 
-def test_odometry_chains_across_a_lost_frame() -> None:
-    """Frame 2 is lost; odometry's motions 1->2 and 2->3 carry frame 3's guess from frame 1."""
-    script = [(shifted(0.1), ""), (shifted(0.1), ""), (shifted(9.0), "lost"), (shifted(0.3), ""), (shifted(0.1), "")]
-    tracker = StubTracker(script)  # frames 1 and 3 from two guesses each (odometry's and the last good pose)
+def test_a_frame_that_alignment_loses_takes_odometrys_pose() -> None:
+    """Frame 2's alignment fails from odometry's guess: the frame is not lost but weak, its pose
+    odometry's (frame 1 moved by 10 cm), its loss kept out of the history that judges later
+    frames; frame 3 is guessed from it."""
+    script = [(shifted(0.1), ""), (shifted(0.1), ""), (shifted(9.0), "only 12 pixels fit the map"), (shifted(0.3), "")]
+    tracker = StubTracker(script)  # frame 1 from two guesses (odometry's and the last good pose), 2 and 3 from one
     front = TrackingFrontend(tracker, replace(ODOMETRY, relocalise_candidates=0), CPU)
     front.track(frame(0), None)
-    front.track(_with_motion(1, 0, 0.1), version())  # type: ignore[arg-type]
-    front.track(_with_motion(2, 1, 0.1), version())  # type: ignore[arg-type]
-    front.track(_with_motion(3, 2, 0.1), version())  # type: ignore[arg-type]
-    assert len(tracker.guesses) == 5
-    torch.testing.assert_close(tracker.guesses[3][:3, 3], torch.tensor([0.3, 0.0, 0.0]))
+    results = [front.track(_with_motion(i, i - 1, 0.1), version()).result for i in (1, 2, 3)]  # type: ignore[arg-type]
+    assert [r.lost for r in results] == ["", "", ""]
+    assert results[1].warning == "pose from visual odometry alone (alignment: only 12 pixels fit the map)"
+    torch.testing.assert_close(front.trajectory.poses[2], shifted(0.2))
+    torch.testing.assert_close(tracker.guesses[3], shifted(0.3))
+    assert len(front.loss_history) == 2  # frames 1 and 3
+
+
+def test_relocalisation_takes_a_place_only_as_far_as_the_camera_may_have_moved() -> None:
+    """Frame 2 is lost from its guess; the only keyframe, 2 m away, gives a sound pose beside it.
+    At the usual interval after frame 1 the camera cannot be there (30 cm an interval): the frame
+    stays lost at its guess. After a gap of 10 s (a reconnection) it may: relocalised there,
+    unless odometry's motion (10 cm) says the camera did not jump: then odometry's pose."""
+    keyframe = Keyframe(0, torch.zeros(4, 6, 3, dtype=torch.uint8), torch.ones(4, 6), shifted(2.0), 100)
+    cases = (  # (frame 2's time, odometry's motion, relocalised from, frame 2's pose, lost)
+        (2 / 30, None, None, 0.2, True),
+        (10.0, None, 0, 2.01, False),
+        (10.0, 0.1, None, 0.2, False),
+    )
+    for timestamp, motion, relocalised, x, lost in cases:
+        script = [(shifted(0.1), ""), (shifted(0.1), ""), (shifted(0.5), "lost"), (shifted(2.01), "")]
+        front = TrackingFrontend(StubTracker(script), replace(ODOMETRY, relocalise_candidates=1), CPU)
+        front.track(frame(0), None)
+        front.track(_with_motion(1, 0, 0.1), version())  # type: ignore[arg-type]
+        later = frame(2) if motion is None else _with_motion(2, 1, motion)
+        result = front.track(replace(later, timestamp=timestamp), version((keyframe,))).result  # type: ignore[arg-type]
+        assert bool(result.lost) is lost and result.relocalised_from == relocalised
+        torch.testing.assert_close(front.trajectory.poses[2], shifted(x))
 
 
 def test_on_real_frames_the_motion_matches_the_motion_capture(tum_sample: Path) -> None:

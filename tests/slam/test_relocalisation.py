@@ -69,17 +69,23 @@ def version(keyframes: tuple[Keyframe, ...] = ()) -> MapVersion:
     return MapVersion(1, None, None, keyframes)  # type: ignore[arg-type]  # the stub trackers never read the map
 
 
-def test_the_guess_after_a_lost_frame_ignores_the_lost_pose_and_restarts_the_velocity() -> None:
+def test_after_a_lost_frame_the_guesses_are_the_last_good_pose_and_its_velocity_carried_on() -> None:
+    """Frames 30 a second, 1 cm each; frame 3 is lost (its pose stays its guess, not the failed
+    solve's 5 m). Frame 4 is tracked from frame 2's velocity carried over two intervals (4 cm)
+    and from frame 2's pose; frame 5, one good frame since, from frame 4's pose (the velocity
+    starts again from zero), frame 6 by constant velocity."""
     a, b, c, d = shifted(0.01), shifted(0.02), shifted(0.04), shifted(0.05)
-    tracker = StubTracker([(a, ""), (b, ""), (shifted(5.0), "lost"), (c, ""), (d, ""), (d, "")])
+    tracker = StubTracker([(a, ""), (b, ""), (shifted(5.0), "lost"), (c, ""), (c, ""), (d, ""), (d, "")])
     front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
     results = [front.track(frame(0), None).result] + [front.track(frame(i), version()).result for i in range(1, 7)]
     assert [bool(r.lost) for r in results] == [False, False, False, True, False, False, False]
     guesses = tracker.guesses
     torch.testing.assert_close(guesses[2], constant_velocity(a, b))  # two good frames: constant velocity
-    torch.testing.assert_close(guesses[3], b)  # after the loss: the last good pose, no velocity
-    torch.testing.assert_close(guesses[4], c)  # one good frame since: still no velocity
-    torch.testing.assert_close(guesses[5], constant_velocity(c, d))  # two good in a row: velocity again
+    torch.testing.assert_close(front.trajectory.poses[3], guesses[2])  # the lost frame keeps its guess
+    torch.testing.assert_close(guesses[3], constant_velocity(a, b, 2.0))  # the velocity over two intervals
+    torch.testing.assert_close(guesses[4], b)  # and the last good pose
+    torch.testing.assert_close(guesses[5], c)  # one good frame since: no velocity
+    torch.testing.assert_close(guesses[6], constant_velocity(c, d))  # two good in a row: velocity again
 
 
 def test_a_lost_frame_is_relocalised_from_a_keyframe_only_when_candidates_are_allowed() -> None:
@@ -198,7 +204,8 @@ def test_frames_follow_the_keyframe_they_were_tracked_after() -> None:
     """A frame's pose moves with its anchor (the newest keyframe of the version it was tracked
     against): unchanged keyframes leave every pose the very tensor tracking gave; a corrected one
     moves its frames by its correction, the next guess with them, and the poses as tracked stay."""
-    truth = [shifted(0.01 * i) for i in range(4)]
+    correction = shifted(0.5)
+    truth = [shifted(0.01 * i) for i in range(3)] + [correction @ shifted(0.03)]  # the last against the corrected map
     tracker = StubTracker([(pose, "") for pose in truth[1:]])
     front = TrackingFrontend(tracker, replace(TrackingConfig(), relocalise_candidates=0), CPU)
     front.track(frame(0), None)
@@ -207,7 +214,6 @@ def test_frames_follow_the_keyframe_they_were_tracked_after() -> None:
     for i in (1, 2):
         front.track(frame(i), version((keyframe,)))
     assert all(a is b for a, b in zip(trajectory.poses_with([keyframe.pose]), trajectory.poses))
-    correction = shifted(0.5)
     moved = replace(keyframe, c2w=correction @ keyframe.c2w)
     followed = trajectory.poses_with([moved.pose])
     for position in (1, 2):

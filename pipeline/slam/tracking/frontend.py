@@ -4,11 +4,14 @@ It carries the trajectory (`Trajectory`: the poses, what they follow, how they w
 the loss history that lost-tracking detection compares against from frame to frame, and hands
 each frame to mapping as a `TrackedFrame`; `mark` says where a checkpoint cut after it stands.
 
-After a lost frame the next guess comes from the last frame tracked well (never from a lost
-pose), and a frame judged lost is tracked again from a few keyframes' poses (`_relocalise`).
-Visual odometry (the frame's `motion` since the frame before, from image features) gives a second
-guess; where it and the usual one disagree, the frame is tracked from both and the better kept
-(`_guesses`).
+After a lost frame the next guesses come from the last frame tracked well (never from a lost
+pose): its pose, and its velocity carried over the time since; a frame judged lost is tracked
+again from a few keyframes' poses (`_relocalise`), and taken from there only where the camera
+may have moved in the time since (`_reachable`). Visual odometry (the frame's `motion` since the
+frame before, from image features) gives a second guess; where it and the usual one disagree,
+the frame is tracked from both and the better kept (`_guesses`). Where alignment fails from
+every guess, a frame odometry placed takes odometry's pose (`_settle`); a frame still lost keeps
+its prediction as its pose, not the failed solve's.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from pipeline.config import TrackingConfig
@@ -69,6 +71,7 @@ class Attempt:
     c2w: torch.Tensor  # [4, 4] camera-to-world, on the device
     verdict: Verdict
     keyframe: int | None = None  # the frame index of the keyframe it started from (relocalisation)
+    by_odometry: bool = False  # the pose is odometry's: alignment failed from every guess
 
     @property
     def state(self) -> TrackingState:
@@ -95,7 +98,6 @@ class TrackingFrontend:
         self._last_c2w: torch.Tensor | None = None  # [4, 4] the last frame's pose on the host (as tracked)
         self._large_step = False  # the last frame moved far from the one before, or was lost
         self._last_index: int | None = None  # the frame index of the last frame tracked
-        self._since_good: np.ndarray | None = None  # [4, 4] the last frame in the last good one's camera
 
     @property
     def frames_done(self) -> int:
@@ -117,7 +119,7 @@ class TrackingFrontend:
         self.trajectory = Trajectory.restored(saved, self.device)
         self.loss_history = list(saved.loss_history)
         self._last_c2w, self._large_step = None, False  # the step into the first frame after it is unknown
-        self._last_index, self._since_good = None, None
+        self._last_index = None
 
     def track(
         self, frame: DeviceFrame, latest: MapVersion | None, anchor: KeyframePose | None = None
@@ -134,9 +136,11 @@ class TrackingFrontend:
                 attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
             else:
                 gaussians = latest.for_current_stream()
-                attempt = self._best_of(gaussians, frame, self._guesses(frame, latest.keyframes))
+                guesses, odometry = self._guesses(frame, latest.keyframes)
+                attempt = self._best_of(gaussians, frame, guesses)
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
-                    attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt)
+                    attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt, odometry)
+                attempt = self._settle(frame, attempt, guesses[0], odometry)
             self._record(frame, attempt, anchor or self._anchor(latest), first=latest is None)
         ready = None
         if frame.depth.is_cuda:
@@ -144,7 +148,7 @@ class TrackingFrontend:
             ready.record()
         result = self._result(frame, attempt)
         self._note_step(result.c2w, attempt.state)
-        self._note_odometry(frame, attempt.state)
+        self._last_index = frame.index
         result.seconds["tracking"] = self.clock.read().get("tracking", 0.0)
         if frame.received_at is not None:
             result.received_at = frame.received_at
@@ -161,41 +165,69 @@ class TrackingFrontend:
         newest = latest.keyframes[-1]
         return newest if newest.c2w._base is None else replace(newest, c2w=newest.c2w.clone())
 
-    def _guesses(self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]) -> list[torch.Tensor]:
-        """The poses [4, 4] to track the frame from: the usual guess (`_initial_pose`), and
-        odometry's (`_odometry_guess`) where the frame has one: odometry's alone where the two
-        agree (`odometry_agree_m`, `_deg`), else both, odometry's first."""
+    def _guesses(
+        self, frame: DeviceFrame, keyframes: Sequence[KeyframePose]
+    ) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """-> (the poses [4, 4] to track the frame from, odometry's guess or None). The poses: the
+        usual guess (`_initial_pose`), and odometry's (`_odometry_guess`) where the frame has
+        one: odometry's alone where the two agree (`odometry_agree_m`, `_deg`), else both,
+        odometry's first."""
         now = {k.position: k.c2w for k in keyframes}
         usual = self._initial_pose(frame, now)
         odometry = self._odometry_guess(frame, now)
         if odometry is None:
-            return [usual]
+            carried = self._carried_velocity(frame, now)
+            return ([usual] if carried is None else [carried, usual]), None
         apart_m, apart_deg = motion_extent(invert_pose(usual) @ odometry).tolist()
         if apart_m <= self.config.odometry_agree_m and apart_deg <= self.config.odometry_agree_deg:
-            return [odometry]
-        return [odometry, usual]
+            return [odometry], odometry
+        return [odometry, usual], odometry
+
+    def _carried_velocity(self, frame: DeviceFrame, now: dict[int, torch.Tensor]) -> torch.Tensor | None:
+        """After lost frames, the camera's last known velocity carried over the time since: the
+        motion between the last good frame and the one before it (both tracked, in a row),
+        repeated for as many of its intervals as have passed (`constant_velocity`); None
+        elsewhere, or where the times do not tell. On fast steady motion (a real loop round a
+        cabinet, 17 cm a frame) the last good pose alone is a frame or more behind."""
+        trajectory = self.trajectory
+        good, states, times = trajectory.last_good, trajectory.states, trajectory.timestamps
+        if trajectory.lost_in_row == 0 or good < 1 or states[good] is not TrackingState.TRACKED:
+            return None
+        before, at = times[good - 1], times[good]
+        if states[good - 1] is TrackingState.LOST or before is None or at is None or not before < at < frame.timestamp:
+            return None
+        fraction = (frame.timestamp - at) / (at - before)
+        return constant_velocity(trajectory.followed(good - 1, now), trajectory.followed(good, now), fraction)
+
+    def _settle(
+        self, frame: DeviceFrame, attempt: Attempt, prediction: torch.Tensor, odometry: torch.Tensor | None
+    ) -> Attempt:
+        """A frame that alignment lost from every guess: odometry's pose where the frame has one
+        (a measurement of the motion, from features matched in the image and in depth: on fast
+        real motion it holds where alignment's basin does not; the frame is mapped, as a weak one
+        is), else the
+        `prediction` [4, 4] (the first guess) as its pose, since a failed solve's pose (one that
+        stopped short, jumped, or fits few pixels) is further off than the guess it left."""
+        verdict = attempt.verdict
+        if not verdict.lost:
+            return attempt
+        if odometry is None:
+            return replace(attempt, c2w=prediction)
+        warning = f"pose from visual odometry alone (alignment: {verdict.lost})"
+        return Attempt(odometry, replace(verdict, lost="", warning=warning), by_odometry=True)
 
     def _odometry_guess(self, frame: DeviceFrame, now: dict[int, torch.Tensor]) -> torch.Tensor | None:
-        """The last good pose moved by odometry's motion since it (the frames after it chained),
-        as the keyframes now place it; None without odometry, or where its chain is broken."""
-        motion = frame.motion
-        if self.config.odometry == "off" or motion is None or self._since_good is None:
+        """The last frame's pose moved by odometry's motion since it, as the keyframes now place
+        it; None without odometry, where the motion is from another frame, or where the last
+        frame was lost (its pose is not to be built on; a frame that odometry placed is never
+        lost, see `_settle`)."""
+        motion, last = frame.motion, len(self.trajectory) - 1
+        if self.config.odometry == "off" or motion is None or motion.since != self._last_index:
             return None
-        if motion.since != self._last_index or self.trajectory.last_good < 0:
+        if last < 0 or self.trajectory.last_good != last:
             return None
-        c2c = torch.from_numpy(self._since_good @ motion.c2c).to(self.device, torch.float32)
-        return self.trajectory.followed(self.trajectory.last_good, now) @ c2c
-
-    def _note_odometry(self, frame: DeviceFrame, state: TrackingState) -> None:
-        """Carry odometry's chain to the next frame: from a good frame it starts again; across a
-        lost one it takes the lost frame's motion on (none: the chain is broken)."""
-        if state is not TrackingState.LOST:
-            self._since_good = np.eye(4)
-        elif self._since_good is not None and frame.motion is not None and frame.motion.since == self._last_index:
-            self._since_good = self._since_good @ frame.motion.c2c
-        else:
-            self._since_good = None
-        self._last_index = frame.index
+        c2c = torch.from_numpy(motion.c2c).to(self.device, torch.float32)
+        return self.trajectory.followed(last, now) @ c2c
 
     def _best_of(self, gaussians: Gaussians, frame: DeviceFrame, guesses: list[torch.Tensor]) -> Attempt:
         """The frame tracked from each guess; of those judged sound (not lost, no warning), the
@@ -237,14 +269,25 @@ class TrackingFrontend:
         """How far a pose may land from its guess and be trusted: `lost_translation_m` per usual
         frame interval, times the intervals since the last good frame (at least one), since after
         a stall or a reconnection the camera has moved on for longer."""
+        return self.config.lost_translation_m * max(1.0, self._intervals_since_good(frame) or 1.0)
+
+    def _reach_m(self, frame: DeviceFrame) -> float:
+        """How far from the last good pose the camera may be now: `_jump_limit_m`, where the
+        frames' times tell; unbounded where they do not (a stream whose time went back, a
+        recording replayed or another session, may be anywhere)."""
+        intervals = self._intervals_since_good(frame)
+        return math.inf if intervals is None else self.config.lost_translation_m * max(1.0, intervals)
+
+    def _intervals_since_good(self, frame: DeviceFrame) -> float | None:
+        """The time from the last good frame to this one in usual frame intervals (the median of
+        the last INTERVAL_WINDOW); None where the times do not tell."""
         timestamps, last_good = self.trajectory.timestamps, self.trajectory.last_good
         known = [t for t in timestamps[-INTERVAL_WINDOW - 1 :] if t is not None]
         intervals = [b - a for a, b in zip(known, known[1:]) if b > a]
         good = timestamps[last_good] if last_good >= 0 else None
         if not intervals or good is None or frame.timestamp <= good:
-            return self.config.lost_translation_m
-        usual = sorted(intervals)[len(intervals) // 2]
-        return self.config.lost_translation_m * max(1.0, (frame.timestamp - good) / usual)
+            return None
+        return (frame.timestamp - good) / sorted(intervals)[len(intervals) // 2]
 
     def _note_step(self, c2w: torch.Tensor, state: TrackingState) -> None:
         """Whether the next frame is expected far from its guess: the frame just tracked (its
@@ -271,27 +314,52 @@ class TrackingFrontend:
         return Attempt(c2w, verdict, keyframe)
 
     def _relocalise(
-        self, gaussians: Gaussians, frame: DeviceFrame, keyframes: Sequence[KeyframePose], lost: Attempt
+        self,
+        gaussians: Gaussians,
+        frame: DeviceFrame,
+        keyframes: Sequence[KeyframePose],
+        lost: Attempt,
+        odometry: torch.Tensor | None,
     ) -> Attempt:
         """A frame judged lost from the usual guess (the last good pose, or the device's motion
         from it), tracked again from the poses of at most `relocalise_candidates` keyframes,
         spread over the store and a different set on each lost frame in a row
         (`relocalisation_picks`). Of the attempts judged neither lost nor weak (map coverage at
-        least `lost_coverage`), the one of least loss per pixel; `lost` if there is none.
+        least `lost_coverage`), the one of least loss per pixel; `lost` if there is none. An
+        attempt further than the camera may have moved (`_reachable`) is a look-alike place,
+        not taken: on a real loop round a cabinet, relocalisation from the first keyframe took
+        frames 1-1.5 m from where they were, and every later frame followed.
 
         Cost, on lost frames only: up to `relocalise_candidates` more runs of the tracker (each
         as dear as a tracked frame's: adam's `iters` renders and backward passes, align's render
         and solve, and its recovery attempt when the solve fails) and one host read each. A lost
         frame is not mapped, so the extra time replaces mapping's."""
         best = lost
+        now = {k.position: k.c2w for k in keyframes}
         picks = relocalisation_picks(len(keyframes), self.config.relocalise_candidates, self.trajectory.lost_in_row)
         for position in picks:
             keyframe = keyframes[position]
             attempt = self._attempt(gaussians, frame, keyframe.c2w, keyframe.index, large_step=True)
             sound = not attempt.verdict.lost and not attempt.verdict.warning
+            sound = sound and self._reachable(frame, attempt.c2w, odometry, now)
             if sound and (best.verdict.lost or attempt.verdict.per_pixel < best.verdict.per_pixel):
                 best = attempt
         return best
+
+    def _reachable(
+        self, frame: DeviceFrame, c2w: torch.Tensor, odometry: torch.Tensor | None, now: dict[int, torch.Tensor]
+    ) -> bool:
+        """Whether the camera may be at `c2w` [4, 4]: within `lost_translation_m` of odometry's
+        guess where the frame has one (odometry measured the motion, however long it took),
+        else within `_reach_m` of the last good pose (as the keyframes `now` place it)."""
+        if odometry is not None:
+            origin, reach = odometry, self.config.lost_translation_m
+        else:
+            reach = self._reach_m(frame)
+            if math.isinf(reach):
+                return True
+            origin = self.trajectory.followed(self.trajectory.last_good, now)
+        return float(torch.linalg.norm(c2w[:3, 3] - origin[:3, 3])) <= reach
 
     def _verdict(
         self,
@@ -330,7 +398,7 @@ class TrackingFrontend:
         """Carry the frame's pose (following `anchor`), and the loss and device pose of a frame
         tracked well, to the next."""
         self.trajectory.append(attempt.c2w, anchor, frame.timestamp, attempt.state, frame.c2w_prior)
-        if not first and math.isfinite(attempt.verdict.per_pixel):
+        if not first and not attempt.by_odometry and math.isfinite(attempt.verdict.per_pixel):
             self.loss_history.append(attempt.verdict.per_pixel)
 
     def _result(self, frame: DeviceFrame, attempt: Attempt) -> FrameResult:
