@@ -48,11 +48,11 @@ for part in "$@"; do
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny,small --variants sequential,process --stem pace_640 ;;
     pace-sequential-keyframe-tiny)  # keyframe rate in one thread, both schedules, the tracking render; 640x480
               bench "$tum" synthetic-tum synthetic-640x480 --presets tiny \
-                --variants sequential,sequential-keyframe,sequential-keyframe-no-refine,process,process-eager-render \
+                --variants sequential,sequential-keyframe,sequential-keyframe-refine,process,process-eager-render \
                 --stem pace_sequential_keyframe_tiny ;;
     pace-sequential-keyframe-small)  # the three schedules tiny's call left standing (9 cells)
               bench "$tum" synthetic-tum synthetic-640x480 --presets small \
-                --variants sequential,sequential-keyframe-no-refine,process --stem pace_sequential_keyframe_small ;;
+                --variants sequential,sequential-keyframe,process --stem pace_sequential_keyframe_small ;;
     drift-odometry-loops)  # issue 35 (carry .device, .data/tum_fr3_cabinet_kf57 and .whl-loops: 56 MB)
               bench "$cabinet" --presets tiny --variants process,process-odometry,process-odometry-loops \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_odometry_loops_cabinet ;;

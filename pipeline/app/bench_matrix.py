@@ -38,7 +38,7 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-adjust-loops": ("slam.schedule=process", "mapping.adjust_window=5", "loops.enabled=true"),
     "process-odometry": ("slam.schedule=process", "tracking.odometry=features"),  # visual odometry's second guess
     "sequential-keyframe": ("slam.schedule=sequential", "mapping.rate=keyframe"),  # one thread, keyframes only mapped
-    "sequential-keyframe-no-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=0"),
+    "sequential-keyframe-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=1"),
     "process-eager-render": ("slam.schedule=process", "tracking.align_fixed_capacity=off"),  # gsplat's own tracking render
     "process-odometry-loops": ("slam.schedule=process", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),

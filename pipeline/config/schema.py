@@ -140,7 +140,7 @@ class MappingConfig:
     optimizer: MapOptimizerKind = "adam"  # selective_adam: only the Gaussians the step's views saw are updated
     rate: MappingRate = "auto"  # keyframe: only keyframes are densified and mapped (chosen on the tracking side by what they add), the rest tracked only; frame: every frame mapped; auto: keyframe under the process schedule, frame under sequential (SplaTAM's order)
     refine_while_idle: bool = True  # process schedule: while no frame waits, refinement passes over the keyframes (in turn the newest one's covisible window and the next of all of them)
-    refine_between: int = 1  # sequential schedule at rate=keyframe: view renders of refinement over the keyframes after each frame between keyframes
+    refine_between: int = 0  # sequential schedule at rate=keyframe: view renders of refinement over the keyframes after each frame between keyframes (0: none; one costs 12-14 ms a frame on an H200)
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)

@@ -123,7 +123,7 @@ def test_sequential_at_keyframe_rate_on_the_gpu_maps_keyframes_and_refines_betwe
     """gsplat's renderer, compiled kernels and graphed mapping: a pose per frame, densified at
     keyframes only, each frame between them a new (refined) map version, the track close."""
     config = with_dataset_defaults(
-        load_config("tiny", overrides=["mapping.rate=keyframe", "keyframes.every=3"]), "replica"
+        load_config("tiny", overrides=["mapping.rate=keyframe", "mapping.refine_between=1", "keyframes.every=3"]), "replica"
     )
     slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CUDA), CUDA)
     frames = _device_frames(8)
