@@ -111,9 +111,10 @@ for part in "$@"; do
                  done
                  python3 bench/live_latency.py --out "$out/live_reconnect" --size 256x192 --seconds 60 \
                    --disconnect-at 25 --set live.retry_initial_s=3 2>&1 | tail -n 4 ;;
-    live-process) for schedule in process sequential; do  # after a bench part: the compile cache is warm, as on a second session
+    live-process) for schedule in process sequential sequential-keyframe; do  # after a bench part: the compile cache is warm
+                    rate=auto; [ "$schedule" = sequential-keyframe ] && rate=keyframe
                     timeout 200 python3 bench/live_latency.py --out "$out/$schedule" --size 640x480 --seconds ${LIVE_S:-90} \
-                      --set slam.schedule=$schedule 2>&1 | tail -n 3
+                      --set slam.schedule=${schedule%-keyframe} --set mapping.rate=$rate 2>&1 | tail -n 3
                   done ;;
     drift-tiny|drift-small)  # issue 35: large steps, local adjustment, loops on and off; the cabinet's loop, the TUM sample, fast loops
                 # (one render is align before large steps were followed; the rest the new tracking; 640x480 throughout)
