@@ -128,6 +128,7 @@ class SplaTAM:
         self.frontend.restore(saved.tracking)
         self.backend.restore(saved.mapping)
         self._passed_mark = self.frontend.mark()
-        self.frontend.trajectory.follow([k.pose for k in self.backend.keyframes])
+        keyframes = [k.pose for k in self.backend.keyframes]
+        self.frontend.trajectory.follow(keyframes)
         if self.chooser is not None:
-            self.chooser.resumed([k.pose for k in self.backend.keyframes])
+            self.chooser.resumed(keyframes)

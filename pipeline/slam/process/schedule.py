@@ -54,9 +54,9 @@ HOLD_AFTER_FAILURE_S = 1.0  # how long the newest version is waited for once the
 
 def start_process_slam(config: Config, device: torch.device, live: bool) -> ProcessSplaTAM:
     """SLAM under the process schedule. The mapping process is started first, so that its
-    start-up (an interpreter, torch's and gsplat's imports, CUDA, the renderers: seconds, the
-    larger part of the schedule's warm-up, bench/NOTES.md) overlaps this process's own set-up
-    (the renderer, the tracker) instead of following it."""
+    start-up (an interpreter, torch's and gsplat's imports, CUDA, the renderers) overlaps this
+    process's own set-up (the renderer, the tracker). Measured on the H200 (bench/NOTES.md, at
+    16f3aff) that did not shorten the warm-up: the mapping process's own start-up is it."""
     mapping = MappingProcess(config, device, live)
     try:
         return ProcessSplaTAM(config, make_renderer(config.render, config.gaussians, device), device, mapping)

@@ -140,7 +140,7 @@ class TrackingFrontend:
                 attempt = self._best_of(gaussians, frame, guesses)
                 if attempt.verdict.lost and self.config.relocalise_candidates > 0:
                     attempt = self._relocalise(gaussians, frame, latest.keyframes, attempt, odometry)
-                attempt = self._settle(frame, attempt, guesses[0], odometry)
+                attempt = self._settle(attempt, guesses[0], odometry)
             self._record(frame, attempt, anchor or self._anchor(latest), first=latest is None)
         ready = None
         if frame.depth.is_cuda:
@@ -190,24 +190,22 @@ class TrackingFrontend:
         elsewhere, or where the times do not tell. On fast steady motion (a real loop round a
         cabinet, 17 cm a frame) the last good pose alone is a frame or more behind."""
         trajectory = self.trajectory
-        good, states, times = trajectory.last_good, trajectory.states, trajectory.timestamps
+        good, states = trajectory.last_good, trajectory.states
         if trajectory.lost_in_row == 0 or good < 1 or states[good] is not TrackingState.TRACKED:
             return None
-        before, at = times[good - 1], times[good]
-        if states[good - 1] is TrackingState.LOST or before is None or at is None or not before < at < frame.timestamp:
+        intervals = self._intervals_after(good, frame) if states[good - 1] is not TrackingState.LOST else None
+        if intervals is None:
             return None
-        fraction = (frame.timestamp - at) / (at - before)
-        return constant_velocity(trajectory.followed(good - 1, now), trajectory.followed(good, now), fraction)
+        return constant_velocity(trajectory.followed(good - 1, now), trajectory.followed(good, now), intervals)
 
-    def _settle(
-        self, frame: DeviceFrame, attempt: Attempt, prediction: torch.Tensor, odometry: torch.Tensor | None
-    ) -> Attempt:
+    @staticmethod
+    def _settle(attempt: Attempt, prediction: torch.Tensor, odometry: torch.Tensor | None) -> Attempt:
         """A frame that alignment lost from every guess: odometry's pose where the frame has one
         (a measurement of the motion, from features matched in the image and in depth: on fast
         real motion it holds where alignment's basin does not; the frame is mapped, as a weak one
-        is), else the
-        `prediction` [4, 4] (the first guess) as its pose, since a failed solve's pose (one that
-        stopped short, jumped, or fits few pixels) is further off than the guess it left."""
+        is), else the `prediction` [4, 4] (the first guess) as its pose, since a failed solve's
+        pose (one that stopped short, jumped, or fits few pixels) is further off than the guess
+        it left."""
         verdict = attempt.verdict
         if not verdict.lost:
             return attempt
@@ -259,11 +257,17 @@ class TrackingFrontend:
         """The part of the last motion to repeat: all of it, unless the last motion spanned a
         stall (a busy GPU, a reconnection: the live source kept only the newest frame) and the
         next frame is at most STALL_RATIO of that time away; then that fraction."""
-        last, before = self.trajectory.timestamps[-1], self.trajectory.timestamps[-2]
-        if last is None or before is None or last <= before or frame.timestamp <= last:
-            return 1.0
-        fraction = (frame.timestamp - last) / (last - before)
-        return fraction if fraction <= STALL_RATIO else 1.0
+        fraction = self._intervals_after(len(self.trajectory) - 1, frame)
+        return fraction if fraction is not None and fraction <= STALL_RATIO else 1.0
+
+    def _intervals_after(self, position: int, frame: DeviceFrame) -> float | None:
+        """The time from the frame at `position` (>= 1) to `frame`, in units of the motion into
+        that frame (from the one before it); None where the times do not tell (unknown, or not
+        increasing)."""
+        before, at = self.trajectory.timestamps[position - 1], self.trajectory.timestamps[position]
+        if before is None or at is None or not before < at < frame.timestamp:
+            return None
+        return (frame.timestamp - at) / (at - before)
 
     def _jump_limit_m(self, frame: DeviceFrame) -> float:
         """How far a pose may land from its guess and be trusted: `lost_translation_m` per usual
