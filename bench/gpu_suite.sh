@@ -23,7 +23,7 @@ if [ -n "${DRY:-}" ]; then
   runs=$(mktemp -d)  # run folders of its own: /tmp is shared on this machine
 else
   python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
-  export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+  export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTHONFAULTHANDLER=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
   export XDG_CACHE_HOME=$PWD/.device/cache  # our CUDA extension built by an earlier call comes carried in .device/
   export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
@@ -32,7 +32,7 @@ else
 fi
 tum=$data/tum_fr1_xyz_37
 cabinet=$data/tum_fr3_cabinet_kf57  # issue 35's real loop (57 frames round a cabinet), carried in .data/ beside the TUM sample
-bench() { python3 -m pipeline bench --quiet --out "$out" --runs "$runs" "$@" "${dry[@]}" 2>&1 | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
+bench() { python3 -m pipeline bench --quiet --out "$out" --runs "$runs" "$@" "${dry[@]}" 2>&1 | tee -a "$out/bench.log" | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12; }
 drift_variants=process-one-render,process,process-loops,process-adjust,process-adjust-loops
 for part in "$@"; do
   echo "== $part (suite at ${SECONDS}s)"
@@ -124,6 +124,13 @@ for part in "$@"; do
               bench "$cabinet" "$tum" synthetic-fast-loops --presets tiny \
                 --variants process,process-odometry,sequential,sequential-odometry \
                 --set dataset.width=640 --set dataset.height=480 --stem odometry_tiny ;;
+    warm-start)  # each cell a fresh process: repeat 0 on cold compile caches, repeat 1 on the warm machine a user's second run meets
+              bench "$tum" --presets tiny --variants sequential-keyframe,process --repeats 2 --stem warm_start_tiny ;;
+    odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
+              bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \
+                --set dataset.width=640 --set dataset.height=480 --stem odometry_slow_tiny ;;
+    odometry-cabinet-sequential) bench "$cabinet" --presets tiny --variants sequential,sequential-odometry \
+                --set dataset.width=640 --set dataset.height=480 --stem odometry_cabinet_sequential_tiny ;;
     drift-base) bench "$cabinet" "$tum" synthetic-fast-loops --presets base --variants default,process \
                   --set dataset.width=640 --set dataset.height=480 --stem drift_base
                 python3 bench/loop_recall.py --out "$out" --data "$cabinet" --data "$tum" --size 640x480 --trap \

@@ -1,4 +1,4 @@
-"""Helpers for the tests that start a live daemon in a subprocess."""
+"""Helpers for the tests that start a daemon, a run or a bench in a subprocess."""
 
 from __future__ import annotations
 
@@ -50,3 +50,17 @@ class PhoneThread:
     def close(self) -> None:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(timeout=10)
+
+
+def spawned_children(pid: int) -> list[int]:
+    """The processes `pid` started with multiprocessing's spawn (not its resource tracker)."""
+    children = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError):
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid and "spawn_main" in command:
+            children.append(int(entry.name))
+    return children

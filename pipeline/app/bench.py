@@ -1,7 +1,7 @@
 """The benchmark harness: a matrix of presets x sequences x variants, one JSON and one table.
 
-Each cell is a full `run` (the same runtime and metrics as the CLI), so a benchmark number is
-always what a user would get.
+Each cell is a full `run` (the same runtime and metrics as the CLI) in a process of its own
+(bench_cell.py), so a benchmark number is always what a user would get.
 """
 
 from __future__ import annotations
@@ -10,148 +10,25 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from pipeline.app.bench_matrix import ABLATIONS, SYNTHETIC_SEQUENCES
+from pipeline.app.bench_cell import Cell, run_cell_in_child
+from pipeline.app.bench_matrix import SYNTHETIC_SEQUENCES
 from pipeline.app.report import WARMUP_FRAMES, versions
-from pipeline.app.run import run_slam
-from pipeline.config import Config, load_config
-from pipeline.devices import describe, placement, resolve_device
-from pipeline.errors import UserError
+from pipeline.config import load_config
+from pipeline.devices import describe
 from pipeline.io.files.atomic import atomic_write_text
-from pipeline.io.outputs.run_metrics import RunMetrics
 
 log = logging.getLogger("gsplatam")
-
-
-@dataclass(frozen=True)
-class Cell:
-    sequence: str  # a dataset folder (absolute: every node of a cluster reads the same path), or a name in SYNTHETIC_SEQUENCES
-    preset: str
-    variant: str = "default"
-    repeat: int = 0  # the same cell run again, for the run-to-run spread
-
-    @property
-    def name(self) -> str:
-        """Its run folder's name under the runs folder."""
-        return f"{Path(self.sequence).name}_{self.preset}_{self.variant}" + (f"_{self.repeat}" if self.repeat else "")
 
 
 def cells_of(sequences: list[str], presets: list[str], variants: list[str], repeats: int = 1) -> list[Cell]:
     """The matrix in its order: sequences, then presets, then variants, each `repeats` times."""
     folders = [s if s in SYNTHETIC_SEQUENCES else str(Path(s).resolve()) for s in sequences]
     return [Cell(s, p, v, r) for s in folders for p in presets for v in variants for r in range(repeats)]
-
-
-def cell_config(cell: Cell, base_overrides: list[str], output: Path) -> Config:
-    """The cell's config: its preset, its sequence, the matrix's settings, its variant's, and its
-    run folder (`cell.name` under `output`)."""
-    generated = list(SYNTHETIC_SEQUENCES.get(cell.sequence, ()))
-    folder = [] if cell.sequence in SYNTHETIC_SEQUENCES else [f"dataset.path={cell.sequence}"]
-    here = [*folder, f"run.output={output}", f"run.name={cell.name}"]
-    return load_config(cell.preset, overrides=generated + base_overrides + list(ABLATIONS[cell.variant]) + here)
-
-
-def bench_device(base_overrides: list[str]) -> torch.device:
-    """The device this machine runs the matrix's cells on (run.device of the matrix's settings)."""
-    return resolve_device(load_config(overrides=base_overrides).run.device)
-
-
-def run_cell(
-    cell: Cell, base_overrides: list[str], runs: Path, device: torch.device, progress: bool, profile: bool
-) -> dict[str, Any]:
-    """Run one cell here, on `device` (this process, or a Ray worker) -> its row, with where it ran
-    and its wall time. A cell that fails gives a row holding its error, so the rest of a matrix
-    goes on; one stopped by a signal (SIGINT, SIGTERM) is marked `interrupted`: the matrix stops."""
-    start = time.perf_counter()
-    interrupted = False
-    try:
-        config = cell_config(cell, base_overrides, runs)
-        # a cell's run folder is scratch: a later benchmark of the same cell replaces it
-        metrics = run_slam(config, device, profile_trace=profile, progress=progress, overwrite=True).metrics
-        if metrics is None:
-            interrupted = True
-            raise UserError("interrupted before its first frame")
-        interrupted = metrics.interrupted
-        row = row_of(cell, metrics)
-    except Exception as exc:  # any failure of this cell, reported in its row
-        log.error("bench: %s failed: %s", cell.name, exc)
-        row = failed_row(cell, exc)
-    except KeyboardInterrupt:  # a signal outside SLAM (the room's generation, the run folder's setting up)
-        interrupted = True
-        row = failed_row(cell, UserError("interrupted"))
-    return {**row, **placement(), "wall_s": time.perf_counter() - start, "interrupted": interrupted}
-
-
-def failed_row(cell: Cell, error: BaseException) -> dict[str, Any]:
-    """The row of a cell that did not finish: its name and the first line of its error."""
-    message = str(error).strip().splitlines()
-    return {
-        "sequence": Path(cell.sequence).name,
-        "preset": cell.preset,
-        "variant": cell.variant,
-        "repeat": cell.repeat,
-        "error": f"{type(error).__name__}: {message[0] if message else ''}",
-    }
-
-
-def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
-    t, runtime, ate, render, loops = metrics.time, metrics.runtime, metrics.ate, metrics.render, metrics.loops
-    assert t is not None, "a finished run is timed"
-    before_loops, closed = metrics.ate_as_tracked, loops.closed if loops else []
-    steps = metrics.large_steps
-    process = metrics.mapping_process  # the process schedule: mapping's own times, per frame mapped
-    before = metrics.render_before_final_iters
-    return {
-        "sequence": metrics.source,
-        "preset": cell.preset,
-        "variant": cell.variant,
-        "repeat": cell.repeat,
-        "frames": metrics.frames,
-        "tracking_ms": 1000 * t.tracking_s,
-        "densify_ms": process["densify_ms"] if process else 1000 * t.densify_s,
-        "mapping_ms": process["mapping_ms"] if process else 1000 * t.mapping_s,
-        "total_ms": 1000 * t.total_s,
-        "fps_wall": t.fps_wall,
-        "fps_steady": t.fps_steady,
-        "warmup_s": t.warmup_s,
-        "kernel_busy": runtime.get("kernel_busy_fraction")
-        or (runtime.get("profile") or {}).get("kernel_busy_fraction"),
-        "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],
-        "gaussians": metrics.gaussians,
-        "peak_gpu_gb": metrics.peak_gpu_memory_gb,
-        "ate_rmse_cm": ate.rmse_cm if ate else None,
-        "ate_mean_cm": ate.mean_cm if ate else None,
-        "psnr_db": render.psnr_db if render else None,
-        "keyframes_psnr_db": render.keyframes_psnr_db if render else None,
-        "psnr_before_final_db": before.psnr_db if before else None,
-        "keyframes_psnr_before_final_db": before.keyframes_psnr_db if before else None,
-        "ssim": render.ssim if render else None,
-        "depth_l1_cm": render.depth_l1_cm if render else None,
-        "depth_rmse_cm": render.depth_rmse_cm if render else None,
-        "lost_frames": metrics.lost_frames,
-        "unmapped_frames": metrics.unmapped_frames,
-        "large_steps": steps.steps if steps else None,
-        "large_step_error_cm": steps.mean_cm if steps and steps.steps else None,
-        "frames_mapped": process["frames_mapped"]
-        if process
-        else metrics.frames_this_run - metrics.unmapped_frames - metrics.between_keyframes,
-        "ate_before_loops_cm": before_loops.rmse_cm if before_loops else None,
-        "loops_detected": loops.detected if loops else None,
-        "loops_accepted": loops.accepted if loops else None,
-        "loops_rejected": loops.rejected if loops else None,
-        "loops_closed": len(closed) if loops else None,
-        "loop_search_ms": loops.search_ms if loops else None,
-        "loop_correct_ms": max((c.correct_ms for c in closed), default=None),
-        "loop_published_ms": max((c.published_ms for c in closed), default=None),
-        "warmup_frames_excluded": t.warmup_frames_excluded,
-        "start_up": process["start_up"] if process else None,  # the process schedule's warm-up, in parts
-        "error": None,
-    }
 
 
 RATIO_KEYS = ("total_ms", "fps_steady", "ate_rmse_cm", "psnr_db")
@@ -201,7 +78,7 @@ def run_matrix(
     profile: bool = False,
     on_report: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    """Run every cell here on `device`, one after the other; run folders (and the generated
+    """Run every cell on this machine's `device`, one after the other, each in a process of its own; run folders (and the generated
     synthetic room) go under `runs`. A signal stops the matrix after the cell it interrupted
     (whose run folder is written, or removed when it had saved nothing): the report holds the
     cells run. `on_report` gets the report of the cells run so far after each cell (so that a
@@ -210,7 +87,7 @@ def run_matrix(
     rows = []
     for done, cell in enumerate(cells):
         log.info("bench: cell %d of %d: %s", done + 1, len(cells), cell.name)
-        rows.append(run_cell(cell, base_overrides, runs, device, progress, profile))
+        rows.append(run_cell_in_child(cell, base_overrides, runs, device, progress, profile))
         if on_report is not None and done + 1 < len(cells):
             on_report(
                 report_of([dict(r) for r in rows], base_overrides, profile, time.perf_counter() - start, device, None)

@@ -8,7 +8,6 @@ import logging
 import os
 import signal
 import sys
-from types import FrameType
 from typing import Any, NoReturn, Protocol
 
 from tqdm.contrib.logging import logging_redirect_tqdm
@@ -32,6 +31,7 @@ from pipeline.app.logs import configure_logging
 from pipeline.config.choices import did_you_mean, nearest
 from pipeline.errors import MappingProcessFailed, StageFailure, UserError
 from pipeline.extras import missing_extra
+from pipeline.processes import terminate_as_interrupt
 
 
 class Command(Protocol):
@@ -120,10 +120,6 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _terminate_as_interrupt(signum: int, frame: FrameType | None) -> None:
-    raise KeyboardInterrupt
-
-
 def _configure_logging(args: argparse.Namespace) -> None:
     configure_logging()
     log.setLevel(logging.DEBUG if args.verbose else getattr(logging, args.log_level.upper()))
@@ -150,7 +146,7 @@ def _main(argv: list[str] | None) -> int:
     # Outside a run SIGTERM ends the command like Ctrl-C; during a run the runtime handles both.
     # SIGINT too, even where the process started with it ignored (a job a shell put in the
     # background): a command given SIGINT stops as the README says, whoever started it.
-    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    signal.signal(signal.SIGTERM, terminate_as_interrupt)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with logging_redirect_tqdm():  # log lines go above the progress bars, never through them

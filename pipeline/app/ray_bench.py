@@ -17,7 +17,8 @@ from typing import Any
 import ray
 import torch
 
-from pipeline.app.bench import Cell, bench_device, failed_row, report_of, run_cell
+from pipeline.app.bench import report_of
+from pipeline.app.bench_cell import Cell, bench_device, failed_row, run_cell
 from pipeline.app.ray_cluster import cause_of, check_gpu_share, connected, declared_resources, summary
 
 log = logging.getLogger("gsplatam")

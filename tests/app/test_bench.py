@@ -55,7 +55,7 @@ def test_the_matrix_reports_its_finished_cells_after_each_one(monkeypatch: pytes
     def fake_cell(cell: Cell, *args: object) -> dict[str, Any]:
         return {**_row(cell.preset, cell.variant, next(totals)), "interrupted": False}
 
-    monkeypatch.setattr(bench_module, "run_cell", fake_cell)
+    monkeypatch.setattr(bench_module, "run_cell_in_child", fake_cell)
     cells = [Cell("room", "tiny", variant, 0) for variant in ("default", "packed", "views2")]
     partial: list[dict[str, Any]] = []
     report = run_matrix(cells, [], tmp_path, torch.device("cpu"), False, on_report=partial.append)

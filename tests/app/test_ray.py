@@ -17,7 +17,8 @@ import torch
 from conftest import ROOT
 from live_helpers import free_port, read_status, wait_for
 
-from pipeline.app.bench import cells_of, report_of, run_cell
+from pipeline.app.bench import cells_of, report_of
+from pipeline.app.bench_cell import run_cell
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig
 from pipeline.io.sources.datasets.loader import open_dataset

@@ -27,7 +27,7 @@ from typing import Any
 import pytest
 import torch
 from conftest import ROOT, SMALL_SYNTH
-from live_helpers import wait_for
+from live_helpers import spawned_children, wait_for
 
 from pipeline.app.cli import main
 from pipeline.config import DatasetConfig, load_config, with_dataset_defaults
@@ -75,8 +75,8 @@ class Run:
 
     def mapping_pid(self) -> int:
         """The mapping process: the spawned child of the run (not multiprocessing's resource tracker)."""
-        self.wait_for(lambda: len(_spawned_children(self.proc.pid)) == 1, "the mapping process")
-        (pid,) = _spawned_children(self.proc.pid)
+        self.wait_for(lambda: len(spawned_children(self.proc.pid)) == 1, "the mapping process")
+        (pid,) = spawned_children(self.proc.pid)
         return pid
 
     def ended(self) -> int:
@@ -89,19 +89,6 @@ class Run:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGKILL)
             self.proc.wait()
-
-
-def _spawned_children(pid: int) -> list[int]:
-    children = []
-    for entry in Path("/proc").iterdir():
-        try:
-            stat = (entry / "stat").read_text()
-            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except (OSError, ValueError):
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == pid and "spawn_main" in command:
-            children.append(int(entry.name))
-    return children
 
 
 def _alive(pid: int) -> bool:

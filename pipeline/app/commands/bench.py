@@ -59,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     variants, presets = _checked(args)
-    from pipeline.app.bench import bench_device, cells_of, markdown, run_matrix, write_report
+    from pipeline.app.bench import cells_of, markdown, run_matrix, write_report
+    from pipeline.app.bench_cell import bench_device
 
     cells = cells_of(args.sequences or ["synthetic"], presets, variants, args.repeats)
     if args.ray is None:

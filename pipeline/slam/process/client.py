@@ -14,14 +14,12 @@ then ignores them; mapping_process.py) and ends when this process ends.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
 import queue
-import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
@@ -31,11 +29,12 @@ import torch.multiprocessing as mp
 from pipeline.config import Config
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
+from pipeline.processes import signals_blocked
 from pipeline.slam.loops.detection import closed_loop_line
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
-from pipeline.slam.process.mapping_process import PARENT_SIGNALS, MappingSetup, run_mapping_process
+from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
 from pipeline.slam.process.shared_map import (
     NEWEST_SLOT,
     VERSION,
@@ -54,18 +53,6 @@ STARTUP_S = 120.0  # a mapping process that has not begun its loop this long aft
 SHUTDOWN_S = 30.0  # a mapping process that does not end this long after Shutdown is terminated
 MAX_WATCH_STEP_S = 2 * WATCH_S  # a longer gap between two watches: this process was not running
 ABANDONED = "stopped waiting for the mapping process (a second signal)"
-
-
-@contextlib.contextmanager
-def signals_blocked() -> Iterator[None]:
-    """SIGINT and SIGTERM held back from this thread while inside; a process started meanwhile
-    starts with them blocked (fork keeps the mask, exec too). One sent meanwhile is delivered to
-    this process once they are unblocked again."""
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, PARENT_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class MappingProcess:

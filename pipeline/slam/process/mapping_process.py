@@ -15,12 +15,8 @@ however the parent ends (a kill -9 too), rather than refine an orphaned map for 
 from __future__ import annotations
 
 import importlib
-import multiprocessing
-import multiprocessing.connection
-import os
 import queue
 import signal
-import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -30,6 +26,7 @@ import torch
 
 from pipeline.config import Config
 from pipeline.frame import DeviceFrame
+from pipeline.processes import STOP_SIGNALS, end_with_the_parent
 from pipeline.render import make_renderer
 from pipeline.slam.handoff import TrackedFrame
 from pipeline.slam.kernel_time import KernelTimer
@@ -40,7 +37,6 @@ from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWrite
 from pipeline.slam.sides import backend_settings, loop_closer_for
 
 BEAT_S = 0.2  # an idle mapping process shows a sign of life this often
-PARENT_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # the group's stop signals, which the parent alone obeys
 EXIT_ORPHANED = 3  # the exit code of a mapping process whose parent ended first
 
 
@@ -66,7 +62,7 @@ def run_mapping_process(setup: MappingSetup) -> None:
     """The process's target: the loop until Shutdown; a failure is reported, then raised."""
     entered = time.monotonic()
     _leave_signals_to_the_parent()
-    _end_with_the_parent()
+    end_with_the_parent(EXIT_ORPHANED)  # nothing to save here: the parent owns the run's files
     try:
         torch.set_num_threads(setup.threads)
         importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
@@ -80,26 +76,11 @@ def run_mapping_process(setup: MappingSetup) -> None:
 
 def _leave_signals_to_the_parent() -> None:
     """Ignore the group's stop signals. They are blocked from before this process started
-    (`client.signals_blocked`), so one sent during its start-up is discarded here, never
+    (`processes.signals_blocked`), so one sent during its start-up is discarded here, never
     delivered as a KeyboardInterrupt halfway through an import."""
-    for sig in PARENT_SIGNALS:
+    for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, PARENT_SIGNALS)
-
-
-def _end_with_the_parent() -> None:
-    """A thread that ends this process once its parent has ended: multiprocessing's sentinel of
-    the parent (a pipe whose other end only the parent holds) becomes readable then, whichever
-    thread started this process and however the parent ended."""
-    parent = multiprocessing.parent_process()
-    if parent is None:
-        return
-
-    def watch() -> None:
-        multiprocessing.connection.wait([parent.sentinel])
-        os._exit(EXIT_ORPHANED)  # nothing to save here: the parent owns the run's files
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 class MappingLoop:
