@@ -112,7 +112,7 @@ class TrackingConfig:
     align_max_renders: int = 3  # align: renders per frame at most (1: one render, no realignment)
     align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)
     align_fixed_capacity: Switch = "auto"  # align: render the map at a fixed intersection capacity, with no host read of the count (auto: on CUDA; 3D Gaussians, unpacked)
-    odometry: OdometryKind = "off"  # features: a second guess from image features matched to the frame before (visual odometry), tracked too where it and constant velocity disagree; off: constant velocity only (the default until measured on the GPU: bench part `odometry`)
+    odometry: OdometryKind = "off"  # features: a second guess from image features matched to the frame before (visual odometry), tracked too where it and constant velocity disagree; off: constant velocity only (the default: on slow motion odometry gains nothing and costs 11-20% of the frames/s; turn it on for fast hand-held motion)
     odometry_features: int = 1000  # ORB keypoints per frame at most
     odometry_min_inliers: int = 15  # feature matches agreeing in the image and in depth for a motion to count
     odometry_agree_m: float = 0.03  # guesses this close (and odometry_agree_deg) are tracked once, from odometry's
