@@ -37,3 +37,14 @@ def persist_compile_cache(device: torch.device) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     os.environ[CACHE_VARIABLE] = str(folder)
     return folder
+
+
+def compile_seconds() -> float | None:
+    """torch.compile's own account of the wall time it has spent compiling in this process so far
+    (dynamo's tracing, inductor's work, cache hits included: a warm on-disk cache shortens it,
+    never to zero, since tracing is redone in every process); None where this torch keeps none."""
+    try:
+        from torch._dynamo.utils import calculate_time_spent
+    except ImportError:
+        return None
+    return float(calculate_time_spent().get("total_wall_time", 0.0))

@@ -48,6 +48,7 @@ class RuntimeReport:
     gpu_gaps_ms: list[float] = field(default_factory=list)
     kernel_sample: dict[str, Any] | None = None  # the GPU's kernel time over a window of frames (slam/kernel_time.py)
     profile: dict[str, Any] | None = None  # kernel-timeline summary when run under the profiler
+    compile_s: float | None = None  # torch.compile's own compile time during the run (compile_cache.compile_seconds)
 
     def summary(self) -> dict[str, Any]:
         gaps = sorted(self.gpu_gaps_ms)

@@ -142,7 +142,7 @@ COLUMNS = [
     ("sequence", "{}"), ("preset", "{}"), ("variant", "{}"), ("repeat", "{}"), ("frames", "{}"),
     ("tracking_ms", "{:.1f}"), ("densify_ms", "{:.1f}"), ("mapping_ms", "{:.1f}"), ("total_ms", "{:.1f}"),
     ("total_ms_ratio", "{:.2f}"), ("fps_steady", "{:.2f}"), ("fps_steady_ratio", "{:.2f}"), ("fps_wall", "{:.2f}"),
-    ("warmup_s", "{:.1f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
+    ("warmup_s", "{:.1f}"), ("compile_s", "{:.1f}"), ("kernel_busy", "{:.3f}"), ("gaussians", "{:,}"),
     ("peak_gpu_gb", "{:.2f}"), ("ate_rmse_cm", "{:.2f}"), ("ate_mean_cm", "{:.2f}"), ("psnr_db", "{:.2f}"),
     ("keyframes_psnr_db", "{:.2f}"),
     ("depth_l1_cm", "{:.2f}"), ("depth_rmse_cm", "{:.2f}"), ("lost_frames", "{}"), ("unmapped_frames", "{}"),

@@ -123,6 +123,9 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "fps_wall": t.fps_wall,
         "fps_steady": t.fps_steady,
         "warmup_s": t.warmup_s,
+        "compile_s": t.compile_s,
+        "first_result_s": t.first_result_s,
+        "warmup_stages_s": t.warmup_stages_s,
         "kernel_busy": runtime.get("kernel_busy_fraction")
         or (runtime.get("profile") or {}).get("kernel_busy_fraction"),
         "gpu_gap_max_ms": runtime["gpu_gap_ms"]["max"],

@@ -27,10 +27,13 @@ from pipeline.stages.frame_log import FrameLog
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
-def timing_summary(frames: FrameLog, report: RuntimeReport) -> TimingRecord:
-    """Mean seconds per stage after the warm-up frames, and frames per second."""
+def timing_summary(frames: FrameLog, report: RuntimeReport, compile_s: float | None = None) -> TimingRecord:
+    """Mean seconds per stage after the warm-up frames, frames per second, and where the warm-up
+    went: its frames' seconds per stage (the rest of `warmup_s` is outside SLAM: reading, decoding
+    and uploading the first frames) and `compile_s`, torch.compile's own share of it all."""
     results = frames.results
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
+    warming = [r for r in results if r.index <= WARMUP_FRAMES]
     mean = {
         k: float(np.mean([r.seconds[k] for r in timed])) if timed else math.nan
         for k in ("tracking", "densify", "mapping", "total")
@@ -48,6 +51,10 @@ def timing_summary(frames: FrameLog, report: RuntimeReport) -> TimingRecord:
         warmup_s=frames.arrivals[min(WARMUP_FRAMES, len(frames.arrivals) - 1)] - frames.started_at
         if frames.arrivals
         else None,
+        warmup_stages_s={k: sum(r.seconds[k] for r in warming) for k in ("tracking", "densify", "mapping")}
+        if warming
+        else None,
+        compile_s=compile_s,
     )
 
 

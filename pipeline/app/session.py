@@ -16,6 +16,7 @@ from torch.profiler import ProfilerActivity, profile
 from pipeline.app.profiling import all_threads_config, summarise
 from pipeline.app.report import timing_summary, versions
 from pipeline.app.setup import Setup
+from pipeline.compile_cache import compile_seconds
 from pipeline.config import Config, switched_on
 from pipeline.devices import describe
 from pipeline.io.outputs.frame_row import FrameRow
@@ -107,7 +108,7 @@ class Session:
             counters=dict(vars(self.source.counters)),
             frame_age_ms=FrameAges.of(frames.results),
             runtime=report.summary() if report is not None else {},
-            time=timing_summary(frames, report) if report is not None else None,
+            time=timing_summary(frames, report, report.compile_s) if report is not None else None,
             ate=ate,
             loops=None if loops is None else LoopRecord.of(loops.tally, loops.closed),
         )
@@ -213,11 +214,15 @@ def execute_session(
     graph = graph_of(session)
     if on_graph is not None:
         on_graph(graph)
+    compiled_before = compile_seconds()
     try:
         if not profile_trace:
             report = execute(graph, session.config.run.loader)
         else:
             report = _profiled(graph, session)
+        compiled_after = compile_seconds()
+        if compiled_before is not None and compiled_after is not None:
+            report.compile_s = compiled_after - compiled_before
         if session.kernels is not None:
             session.kernels.close(session.slam.frames_done)
             sample = session.kernels.sample

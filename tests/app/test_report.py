@@ -114,15 +114,31 @@ def test_the_warm_up_is_timed_from_the_pipelines_start() -> None:
     frames = FrameLog()
     frames.started_at = 10.0
     for i, arrived in enumerate((12.0, 12.5, 13.0, 13.1, 13.2)):
+        seconds = {"tracking": 0.1 * i, "densify": 0.01, "mapping": 1.0 if i == 0 else 0.02}
         frames.add(
-            FrameResult(
-                i, i / 30, torch.eye(4), {"tracking": 0.0, "densify": 0.0, "mapping": 0.0, "total": 0.0}, 0, 0, 0.0, 1.0
-            ),
-            arrived,
+            FrameResult(i, i / 30, torch.eye(4), {**seconds, "total": sum(seconds.values())}, 0, 0, 0.0, 1.0), arrived
         )
-    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0))  # type: ignore[arg-type]
+    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0), compile_s=1.5)  # type: ignore[arg-type]
     assert WARMUP_FRAMES == 2 and timing.first_result_s == 2.0 and timing.warmup_s == 3.0
     assert timing.fps_wall == 1.25 and timing.fps_steady == pytest.approx(2 / 0.2)
+    # where the warm-up went: frames 0-2's seconds per stage, and torch.compile's share
+    assert timing.warmup_stages_s == pytest.approx({"tracking": 0.3, "densify": 0.03, "mapping": 1.04})
+    assert timing.compile_s == 1.5
+
+
+def test_compile_seconds_count_a_compile_in_this_process() -> None:
+    """torch.compile's own account grows by a compile made here and not by a call of what it
+    compiled (the warm-up's compile share in metrics.json is this difference over a run)."""
+    from pipeline.compile_cache import compile_seconds
+
+    scaled = torch.compile(lambda x: 3 * x + 1, backend="eager")  # dynamo's tracing, no codegen: quick
+    before = compile_seconds()
+    assert before is not None
+    scaled(torch.ones(3))
+    compiled = compile_seconds()
+    assert compiled is not None and compiled > before
+    scaled(torch.ones(3))
+    assert compile_seconds() == compiled
 
 
 BARE_PATH = "/usr/bin:/bin"  # a shell's PATH without this Python's environment (no activated venv)

@@ -93,6 +93,8 @@ class TimingRecord:
     fps_steady: float | None  # after the warm-up frames; None with too few frames
     first_result_s: float | None = None  # from the pipeline's start to the first frame's result
     warmup_s: float | None = None  # from the pipeline's start to the last warm-up frame's result (compiles, graphs)
+    warmup_stages_s: dict[str, float] | None = None  # tracking, densify, mapping: summed over the warm-up frames
+    compile_s: float | None = None  # torch.compile's own compile time in this process during the run (tracing included)
 
 
 @dataclass(frozen=True)
