@@ -72,6 +72,7 @@ class Attempt:
     verdict: Verdict
     keyframe: int | None = None  # the frame index of the keyframe it started from (relocalisation)
     by_odometry: bool = False  # the pose is odometry's: alignment failed from every guess
+    c2w_host: torch.Tensor | None = None  # [4, 4] the same pose on the host, read with the verdict (None: not read)
 
     @property
     def state(self) -> TrackingState:
@@ -133,7 +134,8 @@ class TrackingFrontend:
             if latest is None:
                 c2w = torch.eye(4, device=self.device)
                 zero, one = torch.zeros((), device=self.device), torch.ones((), device=self.device)
-                attempt = Attempt(c2w, self._verdict(frame, c2w, c2w, zero, one, "", first=True))
+                verdict, c2w_host = self._verdict(frame, c2w, c2w, zero, one, "", first=True)
+                attempt = Attempt(c2w, verdict, c2w_host=c2w_host)
             else:
                 gaussians = latest.for_current_stream()
                 guesses, odometry = self._guesses(frame, latest.keyframes)
@@ -210,7 +212,7 @@ class TrackingFrontend:
         if not verdict.lost:
             return attempt
         if odometry is None:
-            return replace(attempt, c2w=prediction)
+            return replace(attempt, c2w=prediction, c2w_host=None)
         warning = f"pose from visual odometry alone (alignment: {verdict.lost})"
         return Attempt(odometry, replace(verdict, lost="", warning=warning), by_odometry=True)
 
@@ -314,8 +316,8 @@ class TrackingFrontend:
         """The configured tracker from camera-to-world `c2w_init` [4, 4], judged (one host read)."""
         tracked = self.tracker(gaussians, frame, c2w_init, large_step=large_step)
         c2w = tracked.c2w.detach()
-        verdict = self._verdict(frame, c2w, c2w_init, tracked.best_loss, tracked.coverage, tracked.failure)
-        return Attempt(c2w, verdict, keyframe)
+        verdict, c2w_host = self._verdict(frame, c2w, c2w_init, tracked.best_loss, tracked.coverage, tracked.failure)
+        return Attempt(c2w, verdict, keyframe, c2w_host=c2w_host)
 
     def _relocalise(
         self,
@@ -374,13 +376,17 @@ class TrackingFrontend:
         coverage: torch.Tensor,
         failure: str,
         first: bool = False,
-    ) -> Verdict:
-        """Read the tracker's device scalars once and judge whether tracking held (`failure`: the
-        tracking method's own verdict, e.g. the alignment's solve; `first`: the map's first frame)."""
-        valid = float((frame.depth > 0).sum())
-        cov = float(coverage)
-        per_pixel = float(loss) / max(cov * valid, 1.0)
-        jump = float(torch.linalg.norm(c2w[:3, 3] - c2w_init[:3, 3]))
+    ) -> tuple[Verdict, torch.Tensor]:
+        """Read the tracker's device scalars and the pose `c2w` [4, 4] in one transfer (each read
+        waits for the GPU's queue) and judge whether tracking held (`failure`: the tracking
+        method's own verdict, e.g. the alignment's solve; `first`: the map's first frame) -> the
+        verdict and `c2w` on the host."""
+        jump_m = torch.linalg.norm(c2w[:3, 3] - c2w_init[:3, 3])
+        scalars = torch.stack([(frame.depth > 0).sum().double(), coverage.double(), loss.double(), jump_m.double()])
+        read = torch.cat([scalars, c2w.reshape(-1).double()]).cpu()
+        valid, cov, raw_loss, jump = read[:4].tolist()
+        c2w_host = read[4:].reshape(4, 4).to(c2w.dtype)
+        per_pixel = raw_loss / max(cov * valid, 1.0)
         history = self.loss_history
         lost, warning = "", ""
         if not math.isfinite(per_pixel) and not first:
@@ -396,7 +402,7 @@ class TrackingFrontend:
         elif not first and cov < self.config.lost_coverage:
             # Entering unmapped space looks like this too: the frame is mapped, so the map can grow there.
             warning = f"map covers only {cov:.0%} of the valid pixels"
-        return Verdict(per_pixel, cov, lost, warning)
+        return Verdict(per_pixel, cov, lost, warning), c2w_host
 
     def _record(self, frame: DeviceFrame, attempt: Attempt, anchor: KeyframePose | None, first: bool) -> None:
         """Carry the frame's pose (following `anchor`), and the loss and device pose of a frame
@@ -413,7 +419,7 @@ class TrackingFrontend:
         return FrameResult(
             index=frame.index,
             timestamp=frame.timestamp,
-            c2w=attempt.c2w.cpu(),
+            c2w=attempt.c2w.cpu() if attempt.c2w_host is None else attempt.c2w_host,
             seconds={},
             gaussians=0,
             added=0,
