@@ -181,6 +181,8 @@ class LoopConfig:
     max_angle_deg: float = 60.0  # and its viewing direction within this angle
     min_overlap: float = 0.3  # and this fraction of the current keyframe's pixels lands in its image (overlap samples)
     min_similarity: float = 0.5  # and the descriptors' correlation (-1 to 1) is at least this
+    appearance_similarity: float = 0.8  # beyond the estimates' reach (radius, angle, overlap), a candidate by its look alone: this correlation at least (the cabinet's real revisit: 0.86-0.93) ...
+    drift_fraction: float = 0.3  # ... and its camera centre within radius_m + this x the path travelled since it (as far as the estimates may have drifted)
     max_candidates: int = 3  # candidates verified per keyframe, most similar first
     verify_iters: tuple[int, ...] = (30, 10, 5)  # verification: alignment iterations per pyramid level, coarse to fine
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this
@@ -192,8 +194,8 @@ class LoopConfig:
     agree_deg: float = 4.0  # and within this angle
     confirm_keyframes: int = 2  # the second loop may be one of this many keyframes before (0: a candidate only)
     information_scale: float = 0.01  # an alignment's normal equations x this: an edge's information (pixels correlate)
-    odometry_sigma_m: float = 0.01  # odometry edges of keyframes tracked by adam (no normal equations): std, metres
-    odometry_sigma_deg: float = 0.5  # and of their rotation, degrees
+    odometry_sigma_m: float = 0.2  # an odometry edge whose alignment judged the estimates' step unsound (tracked wrong, as on fast motion): std, metres; soft, so a loop's correction goes there
+    odometry_sigma_deg: float = 10.0  # and of its rotation, degrees
     loop_kernel_width: float = 3.0  # Cauchy kernel on loop edges, in standard deviations
     max_loop_residual_m: float = 0.05  # a loop edge the optimised graph misses by more is dropped
     max_loop_residual_deg: float = 3.0  # likewise in rotation

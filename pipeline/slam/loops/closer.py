@@ -12,7 +12,7 @@ parts of the map overlap.
 Odometry edges join consecutive nodes. Their relative poses are the current estimates, derived
 again before each optimisation (so that mapping's refinement of keyframe poses counts); their
 information is the normal equations of the new keyframe's alignment to the previous one at that
-relative pose (`LoopSearch.odometry`), or `odometry_sigma_*` where that judged itself unsound.
+relative pose (`LoopSearch.odometry`), or the soft `odometry_sigma_*` where that judged the step unsound.
 
 With loop closure off (`loops.enabled` false) the mapping side holds a `NoLoopCloser`: the same
 calls, doing nothing.
@@ -193,13 +193,15 @@ class LoopCloser:
     ) -> torch.Tensor:
         """The information [6, 6] of the edge from the keyframe before the newest (node - 1: the
         store keeps its newest keyframes) to the newest (`sources`: its pyramid as points;
-        `LoopSearch.odometry`), `odometry_sigma_*` where that judged itself unsound; zeros for the
-        first node."""
+        `LoopSearch.odometry`); where that judged the estimates' step unsound (tracked wrong,
+        as on fast motion), `odometry_sigma_*`: a soft edge, where a loop's correction may go,
+        rather than one as stiff as a sound step's; zeros for the first node."""
         if node == 0:
             return torch.zeros(6, 6, dtype=F64)
-        fallback = fixed_information(self.config.odometry_sigma_m, self.config.odometry_sigma_deg)
         verification = self.search.odometry(keyframes, sources, intrinsics)
-        return fallback if verification.failure else verification.information
+        if verification.failure:
+            return fixed_information(self.config.odometry_sigma_m, self.config.odometry_sigma_deg)
+        return verification.information
 
     def _graph(self, keyframes: list[Keyframe], loops: list[Edge]) -> PoseGraph:
         """Nodes at the current estimates (stored keyframes' poses, the last known of the others),
