@@ -174,23 +174,29 @@ def run_cell_in_child(
     rows, sender = context.Pipe(duplex=False)
     args = (sender, cell, base_overrides, str(runs), str(device), progress, profile, log.level)
     child = context.Process(target=_cell_process, args=args, name=f"gsplatam-cell-{cell.name}")
-    with signals_blocked():
-        child.start()
-    sender.close()  # the child's end: the pipe reads end-of-file once the child is gone
-    signalled: list[int] = []
+    signalled: list[int] = []  # every stop signal received here
+    pending: list[int] = []  # those received before the child existed
 
     def forward(signum: int, frame: FrameType | None) -> None:
         signalled.append(signum)
-        if child.exitcode is None:
-            os.kill(child.pid, signum)  # type: ignore[arg-type]
+        if child.pid is None:
+            pending.append(signum)
+        elif child.exitcode is None:
+            os.kill(child.pid, signum)
 
     previous = {sig: signal.signal(sig, forward) for sig in catchable_signals()}
     try:
+        with signals_blocked():  # the child starts with them blocked; one sent meanwhile comes here after
+            child.start()
+        sender.close()  # the child's end: the pipe reads end-of-file once the child is gone
+        for signum in pending:
+            os.kill(child.pid, signum)  # type: ignore[arg-type]
         row: dict[str, Any] | None = json.loads(rows.recv_bytes())
     except EOFError:
         row = None
     finally:
-        child.join()
+        if child.pid is not None:
+            child.join()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if row is not None:
