@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from types import FrameType
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+EXIT_ORPHANED = 3  # the exit code of a child process whose parent ended first
 
 
 @contextlib.contextmanager
@@ -33,8 +34,8 @@ def signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-def end_with_the_parent(exit_code: int) -> None:
-    """A thread that ends this process (with `exit_code`, nothing saved) once its parent has
+def end_with_the_parent() -> None:
+    """A thread that ends this process (EXIT_ORPHANED, nothing saved) once its parent has
     ended: multiprocessing's sentinel of the parent (a pipe whose other end only the parent
     holds) becomes readable then, whichever thread started this process and however the parent
     ended (a kill -9 too). Nothing without a multiprocessing parent."""
@@ -44,7 +45,7 @@ def end_with_the_parent(exit_code: int) -> None:
 
     def watch() -> None:
         multiprocessing.connection.wait([parent.sentinel])
-        os._exit(exit_code)
+        os._exit(EXIT_ORPHANED)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 

@@ -35,8 +35,6 @@ from pipeline.runtime import catchable_signals
 
 log = logging.getLogger("gsplatam")
 
-EXIT_ORPHANED = 3  # the exit code of a cell's process whose parent ended first
-
 
 @dataclass(frozen=True)
 class Cell:
@@ -226,7 +224,7 @@ def _cell_process(
     """The child's target: a process group of its own (the parent forwards the stop signals),
     the CLI's logging and signal handling, then the cell; its row goes back as JSON."""
     os.setpgid(0, 0)
-    end_with_the_parent(EXIT_ORPHANED)
+    end_with_the_parent()
     configure_logging()
     log.setLevel(level)
     signal.signal(signal.SIGTERM, terminate_as_interrupt)

@@ -27,10 +27,10 @@ from pipeline.stages.frame_log import FrameLog
 WARMUP_FRAMES = 2  # frame 0 (map initialisation) and frame 1 (first tracking: compilation) are left out of timing means
 
 
-def timing_summary(frames: FrameLog, report: RuntimeReport, compile_s: float | None = None) -> TimingRecord:
+def timing_summary(frames: FrameLog, report: RuntimeReport) -> TimingRecord:
     """Mean seconds per stage after the warm-up frames, frames per second, and where the warm-up
     went: its frames' seconds per stage (the rest of `warmup_s` is outside SLAM: reading, decoding
-    and uploading the first frames) and `compile_s`, torch.compile's own share of it all."""
+    and uploading the first frames) and the report's `compile_s`, torch.compile's own share of it all."""
     results = frames.results
     timed = [r for r in results if r.index >= WARMUP_FRAMES] or results
     warming = [r for r in results if r.index <= WARMUP_FRAMES]
@@ -54,7 +54,7 @@ def timing_summary(frames: FrameLog, report: RuntimeReport, compile_s: float | N
         warmup_stages_s={k: sum(r.seconds[k] for r in warming) for k in ("tracking", "densify", "mapping")}
         if warming
         else None,
-        compile_s=compile_s,
+        compile_s=report.compile_s,
     )
 
 

@@ -108,7 +108,7 @@ class Session:
             counters=dict(vars(self.source.counters)),
             frame_age_ms=FrameAges.of(frames.results),
             runtime=report.summary() if report is not None else {},
-            time=timing_summary(frames, report, report.compile_s) if report is not None else None,
+            time=timing_summary(frames, report) if report is not None else None,
             ate=ate,
             loops=None if loops is None else LoopRecord.of(loops.tally, loops.closed),
         )

@@ -118,7 +118,7 @@ def test_the_warm_up_is_timed_from_the_pipelines_start() -> None:
         frames.add(
             FrameResult(i, i / 30, torch.eye(4), {**seconds, "total": sum(seconds.values())}, 0, 0, 0.0, 1.0), arrived
         )
-    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0), compile_s=1.5)  # type: ignore[arg-type]
+    timing = timing_summary(frames, SimpleNamespace(frames=5, wall_s=4.0, compile_s=1.5))  # type: ignore[arg-type]
     assert WARMUP_FRAMES == 2 and timing.first_result_s == 2.0 and timing.warmup_s == 3.0
     assert timing.fps_wall == 1.25 and timing.fps_steady == pytest.approx(2 / 0.2)
     # where the warm-up went: frames 0-2's seconds per stage, and torch.compile's share

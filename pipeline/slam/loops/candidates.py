@@ -9,7 +9,7 @@ they put the end 2 m and 44 degrees from the start, which the truth puts 0.34 m 
 away (bench/NOTES.md). So a keyframe that looks very like the newest one (`appearance_similarity`)
 is a candidate beyond the estimates' reach too, as far as they may have drifted since it
 (`drift_fraction` of the path travelled); its verification does not start from the estimates
-(`detection.start_pose`)."""
+(`detection.start_poses`)."""
 
 from __future__ import annotations
 
@@ -105,8 +105,11 @@ def loop_candidates(
     passing = torch.nonzero((near & (similarity >= config.min_similarity)) | far)[:, 0]
     ranked = passing[torch.argsort(similarity[passing], descending=True)][: config.max_candidates]
     stats = torch.stack([similarity, distance, angle, overlap, far.double()]).cpu()  # one read of [5, K]
-    rows = [[float(x) for x in stats[:, k]] for k in ranked.tolist()]
-    return [LoopCandidate(k, s, d, a, o, by_appearance=bool(f)) for k, (s, d, a, o, f) in zip(ranked.tolist(), rows)]
+    found = []
+    for k in ranked.tolist():
+        similar, distant, angled, overlapping, by_appearance = (float(x) for x in stats[:, k])
+        found.append(LoopCandidate(k, similar, distant, angled, overlapping, bool(by_appearance)))
+    return found
 
 
 def travelled_m(poses: torch.Tensor) -> torch.Tensor:

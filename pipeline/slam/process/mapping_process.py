@@ -37,7 +37,6 @@ from pipeline.slam.process.shared_map import MapControl, MapGeneration, MapWrite
 from pipeline.slam.sides import backend_settings, loop_closer_for
 
 BEAT_S = 0.2  # an idle mapping process shows a sign of life this often
-EXIT_ORPHANED = 3  # the exit code of a mapping process whose parent ended first
 
 
 @dataclass(frozen=True)
@@ -62,7 +61,7 @@ def run_mapping_process(setup: MappingSetup) -> None:
     """The process's target: the loop until Shutdown; a failure is reported, then raised."""
     entered = time.monotonic()
     _leave_signals_to_the_parent()
-    end_with_the_parent(EXIT_ORPHANED)  # nothing to save here: the parent owns the run's files
+    end_with_the_parent()  # nothing to save here: the parent owns the run's files
     try:
         torch.set_num_threads(setup.threads)
         importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
