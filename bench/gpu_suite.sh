@@ -59,6 +59,14 @@ for part in "$@"; do
     drift-odometry-loops)  # issue 35 (carry .device, .data/tum_fr3_cabinet_kf57 and .whl-loops: 56 MB)
               bench "$cabinet" --presets tiny --variants process,process-odometry,process-odometry-loops \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_odometry_loops_cabinet ;;
+    drift-lost)  # issue 35: loops searched from lost frames too (the cabinet's revisit is lost); carry as drift-odometry-loops
+              bench "$cabinet" --presets tiny \
+                --variants process-odometry,process-odometry-loops,process-loops,sequential-odometry,sequential-odometry-loops \
+                --set dataset.width=640 --set dataset.height=480 --stem drift_lost_cabinet ;;
+    loops-tiny) bench synthetic-loops synthetic-trap --presets tiny --variants default,loops --stem loops_tiny ;;
+    warm-start-synthetic)  # warm-start on the generated TUM-like scene (640x480): no dataset to carry
+              bench synthetic-tum --presets tiny --variants sequential-keyframe,process --repeats 2 \
+                --set synthetic.frames=40 --stem warm_start_synthetic_tiny ;;
     pace-1200) bench synthetic --presets tiny,small --variants sequential,process --stem pace_1200 ;;
     pace-base) bench "$tum" --presets base --variants sequential --stem pace_base_tum ;;
     odometry-cabinet) bench "$cabinet" --presets tiny --variants process,process-odometry \

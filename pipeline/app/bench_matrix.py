@@ -42,6 +42,7 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-eager-render": ("slam.schedule=process", "tracking.align_fixed_capacity=off"),  # gsplat's own tracking render
     "process-odometry-loops": ("slam.schedule=process", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),
+    "sequential-odometry-loops": ("slam.schedule=sequential", "tracking.odometry=features", "loops.enabled=true"),
 }  # fmt: skip
 
 

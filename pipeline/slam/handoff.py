@@ -37,10 +37,11 @@ class FrameResult:
 
 @dataclass(frozen=True)
 class TrackedFrame:
-    """What tracking hands to mapping (unless it judged the frame lost): a frame and its pose."""
+    """What tracking hands to mapping: a frame and its pose."""
 
     frame: DeviceFrame
     c2w: torch.Tensor  # [4, 4] estimated camera-to-world, on the device
     position: int  # the frame's position among the run's poses
     ready: torch.cuda.Event | None = None  # recorded after tracking on its stream; None on the CPU
     keyframe: bool = False  # tracking chose it as a keyframe (mapping.rate=keyframe); else mapping's cadence says
+    lost: bool = False  # tracking judged it lost: never mapped, only searched for a loop (loops on)

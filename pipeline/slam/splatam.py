@@ -60,11 +60,12 @@ class SplaTAM:
 
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track one frame (colour, depth and intrinsics on the device) and map it, unless
-        tracking judged it lost (at `mapping.rate=keyframe`: unless it is no keyframe; then a
-        short refinement pass over the keyframes, `mapping.refine_between` renders)."""
+        tracking judged it lost (then, with loops on, only searched for a loop) (at
+        `mapping.rate=keyframe`: unless it is no keyframe; then a short refinement pass over the
+        keyframes, `mapping.refine_between` renders)."""
         tracked, result = self.frontend.track(frame, self.backend.latest)
         if result.lost:
-            mapped = self.backend.skip()
+            mapped = self.backend.map(tracked)
         elif self.chooser is None:
             mapped = self.backend.map(tracked, is_last)
         else:

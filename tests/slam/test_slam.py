@@ -361,3 +361,20 @@ def test_the_batched_quaternion_conversion_is_the_single_one_row_by_row() -> Non
     batched = rotmats_to_quats(rotations)
     assert torch.equal(batched, torch.stack([rotmat_to_quat(r) for r in rotations]))
     assert (batched[:, 0] >= 0).all() and torch.allclose(quat_to_rotmat(batched), rotations, atol=1e-12)
+
+
+def test_with_loops_on_a_lost_frame_is_searched_for_a_loop_but_never_mapped(replica_seq) -> None:
+    """Loops on: the garbage frame of the test above is searched for a loop (one search more than
+    the keyframes', no candidate fits), and neither densified, mapped nor kept as a keyframe."""
+    config = with_dataset_defaults(load_config("tiny", overrides=["mapping.iters=2", "loops.enabled=true"]), "replica")
+    frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()]
+    slam = SplaTAM(config, make_renderer(config.render, config.gaussians, CPU), CPU)
+    assert all(not slam.step(f).lost for f in frames[:6])
+    searches, keyframes = slam.backend.loops.state.tally.searches, len(slam.backend.keyframes)
+    means = slam.gaussians.means.clone()
+    bad = frames[5]
+    noise = torch.rand(bad.color.shape, generator=torch.Generator().manual_seed(0))
+    result = slam.step(type(bad)(6, 0.2, noise, bad.depth * 2, bad.intrinsics, None), is_last=True)
+    assert result.lost and not result.mapped and result.added == 0
+    assert slam.backend.loops.state.tally.searches == searches + 1 and len(slam.backend.keyframes) == keyframes
+    assert torch.equal(slam.gaussians.means, means)

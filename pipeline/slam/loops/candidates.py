@@ -80,6 +80,7 @@ def loop_candidates(
     intrinsics: torch.Tensor,
     pixels: torch.Tensor,
     config: LoopConfig,
+    lost: bool = False,
 ) -> list[LoopCandidate]:
     """The old keyframes the newest of `keyframes` (oldest first, current estimates) may see
     again, most similar first, at most `max_candidates`: at least `min_keyframes_back` older,
@@ -87,8 +88,10 @@ def loop_candidates(
     `min_overlap` of the current keyframe's sampled `pixels` (flat indices into its depth) in
     their images, descriptor similarity at least `min_similarity`; or, beyond that reach, a
     similarity of at least `appearance_similarity` and a centre within `radius_m` plus
-    `drift_fraction` of the path the estimates travelled since. `descriptors` [K, D], one per
-    keyframe (`descriptor`)."""
+    `drift_fraction` of the path the estimates travelled since; or, where the newest is a frame
+    tracking `lost` (its pose is no measurement: on the cabinet's revisit it sat 2.5 m from the
+    first keyframe, the reach 2.3 m), that similarity alone, anywhere, as a relocaliser searches
+    its whole keyframe database. `descriptors` [K, D], one per keyframe (`descriptor`)."""
     old = len(keyframes) - config.min_keyframes_back
     if old <= 0:
         return []
@@ -101,7 +104,7 @@ def loop_candidates(
     similarity = (descriptors[:old] @ descriptors[-1]).double()
     near = (distance <= config.radius_m) & (angle <= config.max_angle_deg) & (overlap >= config.min_overlap)
     reach = config.radius_m + config.drift_fraction * travelled_m(every)[:old]
-    far = ~near & (distance <= reach) & (similarity >= config.appearance_similarity)
+    far = ~near & ((distance <= reach) | lost) & (similarity >= config.appearance_similarity)
     passing = torch.nonzero((near & (similarity >= config.min_similarity)) | far)[:, 0]
     ranked = passing[torch.argsort(similarity[passing], descending=True)][: config.max_candidates]
     stats = torch.stack([similarity, distance, angle, overlap, far.double()]).cpu()  # one read of [5, K]

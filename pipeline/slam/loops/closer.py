@@ -29,7 +29,7 @@ import torch
 from pipeline.config import LoopConfig, TrackingConfig
 from pipeline.render.types import Gaussians
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
-from pipeline.slam.loops.detection import ClosedLoop, closed_loop_line
+from pipeline.slam.loops.detection import ClosedLoop, LoopDetection, closed_loop_line
 from pipeline.slam.loops.map_correction import corrections, move_map
 from pipeline.slam.loops.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
 from pipeline.slam.loops.search import LoopSearch
@@ -51,6 +51,8 @@ class Correction:
 
 
 class LoopCloser:
+    searches_lost_frames = True  # a frame tracking lost is searched for a loop (`frame_lost`)
+
     def __init__(
         self,
         config: LoopConfig,
@@ -119,7 +121,40 @@ class LoopCloser:
         """The newest of `keyframes` (the store, oldest first) was just kept (`keyframe_kept`);
         -> the map and the store, moved with the corrected poses when a loop closed (recorded
         when that map is published: `map_published`), else as they were."""
-        correction = self.keyframe_kept(keyframes, intrinsics)
+        return self._corrected(gaussians, keyframes, self.keyframe_kept(keyframes, intrinsics))
+
+    def frame_lost(
+        self, gaussians: Gaussians, keyframes: list[Keyframe], lost: Keyframe, intrinsics: torch.Tensor
+    ) -> tuple[Gaussians, list[Keyframe]] | None:
+        """A frame tracking judged lost (`lost`, at the pose it was given), searched for a loop as a
+        keyframe would be: on a loop whose estimates drifted far, the revisit's frames are lost
+        (tracked against a map that puts the place seen again metres away) exactly where the loop
+        is, so a search from keyframes alone never sees it. Its step from the newest keyframe is
+        measured first against that keyframe's image (`LoopSearch.step_from_previous`); where a
+        loop is accepted, the frame becomes a keyframe (a node of the graph; it seeds no Gaussian)
+        at that pose and the loop is closed. -> the map and the store (the frame kept, oldest
+        first; moved where the loop closed, recorded when that map is published), or None:
+        nothing accepted, nothing changed but the sightings kept for the next search."""
+        if not keyframes:
+            return None
+        started = time.perf_counter()
+        trial = [*keyframes, lost]
+        sources = self.search.kept(trial, intrinsics)
+        step = self.search.step_from_previous(trial, sources, intrinsics)
+        if not step.failure:
+            previous = keyframes[-1].c2w.detach().to("cpu", F64)
+            trial[-1] = replace(lost, c2w=(previous @ step.relative).to(lost.c2w))
+        detection = self._detect(trial, sources, intrinsics, started, lost=True)
+        if not detection.accepted:
+            return None
+        self._add_node(trial, sources, intrinsics)
+        return self._corrected(gaussians, trial, self._closed(trial, detection, started))
+
+    def _corrected(
+        self, gaussians: Gaussians, keyframes: list[Keyframe], correction: Correction | None
+    ) -> tuple[Gaussians, list[Keyframe]]:
+        """The map and the store moved by `correction` (None: as they are), kept to be recorded
+        when that map is published."""
         if correction is None:
             return gaussians, keyframes
         self._unpublished = correction
@@ -143,25 +178,50 @@ class LoopCloser:
         """The newest of `keyframes` (the store, oldest first) was just kept: its node and
         odometry edge, then the loop search; -> the correction when a loop is closed."""
         started = time.perf_counter()
-        current = keyframes[-1]
         sources = self.search.kept(keyframes, intrinsics)
-        state, node = self.state, len(self.state.node_positions)
+        self._add_node(keyframes, sources, intrinsics)
+        return self._closed(keyframes, self._detect(keyframes, sources, intrinsics, started), started)
+
+    def _add_node(self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor) -> None:
+        """The newest of `keyframes` (`sources`: its pyramid as points) becomes the graph's newest
+        node, with its odometry edge from the node before."""
+        state, node, current = self.state, len(self.state.node_positions), keyframes[-1]
         state.node_positions.append(current.pose.position)
         state.node_c2w = torch.cat([state.node_c2w, current.c2w.detach().to("cpu", F64)[None]])
         state.odometry_information = torch.cat(
             [state.odometry_information, self._odometry(keyframes, sources, intrinsics, node)[None]]
         )
+
+    def _detect(
+        self,
+        keyframes: list[Keyframe],
+        sources: list[SourcePoints],
+        intrinsics: torch.Tensor,
+        started: float,
+        lost: bool = False,
+    ) -> LoopDetection:
+        """The loop search of the newest of `keyframes` (the node it has or would have; `lost`: a
+        frame tracking lost), counted."""
+        node = len(self.state.node_positions) - (keyframes[-1].pose.position in self.state.node_of())
         generator = torch.Generator().manual_seed(self.seed + node)  # no state to keep: one draw per node
-        pixels = sample_valid_pixels(current.depth, self.samples, generator)
-        detection = self.search.detect(keyframes, sources, intrinsics, pixels)
-        state.tally = state.tally.counted(detection, time.perf_counter() - started)
+        pixels = sample_valid_pixels(keyframes[-1].depth, self.samples, generator)
+        detection = self.search.detect(keyframes, sources, intrinsics, pixels, lost)
+        self.state.tally = self.state.tally.counted(detection, time.perf_counter() - started)
+        return detection
+
+    def _closed(self, keyframes: list[Keyframe], detection: LoopDetection, started: float) -> Correction | None:
+        """The graph, with the accepted loops of `detection` (from the newest node, the newest of
+        `keyframes`), optimised: -> the correction where its optimum moved the nodes."""
+        state = self.state
         node_of = state.node_of()
+        node = node_of[keyframes[-1].pose.position]
         found = [
             replace(edge, first=node_of[keyframes[edge.first].pose.position], second=node) for edge in detection.edges()
         ]
         if not found:
             return None
         detected = time.perf_counter()
+        current = keyframes[-1]
         graph = self._graph(keyframes, [*state.loops, *found])
         solution = optimise(graph, self.config)
         state.tally = state.tally.optimised(solution)
@@ -212,6 +272,8 @@ class LoopCloser:
 class NoLoopCloser:
     """Loop closure off: `LoopCloser`'s calls, keeping no graph and closing no loop."""
 
+    searches_lost_frames = False
+
     def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
         """Nothing to continue (loop closure's part of a checkpoint, if any, is left aside)."""
 
@@ -229,6 +291,12 @@ class NoLoopCloser:
     ) -> tuple[Gaussians, list[Keyframe]]:
         """-> the map and the store as they are."""
         return gaussians, keyframes
+
+    def frame_lost(
+        self, gaussians: Gaussians, keyframes: list[Keyframe], lost: Keyframe, intrinsics: torch.Tensor
+    ) -> tuple[Gaussians, list[Keyframe]] | None:
+        """-> None: a lost frame is not searched."""
+        return None
 
     def map_published(self, device: torch.device) -> tuple[ClosedLoop, ...]:
         """-> no loop closed."""

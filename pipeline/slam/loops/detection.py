@@ -91,9 +91,15 @@ class LoopDetection:
 
     def sightings(self, keyframes: Sequence[Keyframe]) -> list[Sighting]:
         """Its verified loops as `Sighting`s (`keyframes`: the store it searched)."""
-        current = keyframes[self.current].pose.position
+        current = keyframes[self.current]
+        seen_from = current.c2w.detach().to("cpu", torch.float64)
         return [
-            Sighting(keyframes[check.candidate.position].pose.position, current, check.verification.relative)
+            Sighting(
+                keyframes[check.candidate.position].pose.position,
+                current.pose.position,
+                check.verification.relative,
+                seen_from,
+            )
             for check in self.checks
             if check.verified
         ]
@@ -277,22 +283,28 @@ def agree(a: torch.Tensor, b: torch.Tensor, config: LoopConfig) -> bool:
 
 @dataclass(frozen=True)
 class Sighting:
-    """A loop an earlier keyframe verified: kept for `loops.confirm_keyframes` keyframes, so that
-    a later keyframe's verified loop that puts the keyframes where this one does confirms it."""
+    """A loop an earlier search verified (a keyframe's, or a lost frame's): kept for
+    `loops.confirm_keyframes` searches, so that a later verified loop that puts the cameras where
+    this one does confirms it."""
 
     old: int  # the old keyframe's frame position
-    current: int  # the frame position of the keyframe that saw it
-    relative: torch.Tensor  # [4, 4] float64: that keyframe's camera in the old one's, as aligned
+    current: int  # the frame position of the keyframe (or lost frame) that saw it
+    relative: torch.Tensor  # [4, 4] float64: that camera in the old one's, as aligned
+    seen_from: torch.Tensor  # [4, 4] float64: that camera's camera-to-world as estimated then
 
     def implied(self, keyframes: Sequence[Keyframe]) -> torch.Tensor | None:
         """The newest of `keyframes`' camera-to-world [4, 4] float64 that this loop implies: the
-        pose it gives its own keyframe, carried to the newest by their estimates' relative pose
-        (None when either keyframe has left the store)."""
+        pose it gives the camera that saw it, carried to the newest by their estimates' relative
+        pose (the seer's estimate now where it is a stored keyframe, else `seen_from`: a lost
+        frame is never stored); None when the old keyframe has left the store."""
         stored = {keyframe.pose.position: keyframe for keyframe in keyframes}
-        old, seen_by = stored.get(self.old), stored.get(self.current)
-        if old is None or seen_by is None:
+        old = stored.get(self.old)
+        if old is None:
             return None
-        return implied_pose(old, self.relative) @ relative_pose(seen_by, keyframes[-1]).cpu()
+        seen_by = stored.get(self.current)
+        seer = self.seen_from if seen_by is None else seen_by.c2w.detach().to("cpu", torch.float64)
+        newest = keyframes[-1].c2w.detach().to("cpu", torch.float64)
+        return implied_pose(old, self.relative) @ invert_pose(seer) @ newest
 
 
 def detect_loops(
@@ -305,14 +317,15 @@ def detect_loops(
     tracking: TrackingConfig,
     sightings: Sequence[Sighting] = (),
     iteration: AlignIteration = lm_iteration,
+    lost: bool = False,
 ) -> LoopDetection:
     """The loop search for the newest of `keyframes` (its pyramid as points: `sources`; the
     stored keyframes' descriptors and targets: `views`): candidates (`loop_candidates`), each
     verified (`verify`), the verified ones accepted where another verified candidate, or a
     loop an earlier keyframe verified (`sightings`), agrees on the current keyframe's pose
-    (`agree`)."""
+    (`agree`); `lost`: the newest is a frame tracking lost (`loop_candidates`)."""
     current = keyframes[-1]
-    candidates = loop_candidates(keyframes, views.descriptors(list(keyframes)), intrinsics, pixels, config)
+    candidates = loop_candidates(keyframes, views.descriptors(list(keyframes)), intrinsics, pixels, config, lost)
     verifications = [
         closest_fit(
             [

@@ -1,9 +1,12 @@
-"""The loop search over a run's keyframes, as the mapping side runs it at each keyframe kept:
-the keyframe's views made once (`views.KeyframeViews`), its pyramid as points made once per
-search and shared by its odometry edge and its candidates' verifications, and the loops the last
-`loops.confirm_keyframes` keyframes verified carried to the next search (`detection.Sighting`)."""
+"""The loop search over a run's keyframes, as the mapping side runs it at each keyframe kept
+(and, where tracking lost a frame, from that frame: `LoopCloser.frame_lost`): the keyframe's
+views made once (`views.KeyframeViews`), its pyramid as points made once per search and shared
+by its odometry edge and its candidates' verifications, and the loops the last
+`loops.confirm_keyframes` searches verified carried to the next (`detection.Sighting`)."""
 
 from __future__ import annotations
+
+from collections import deque
 
 import torch
 
@@ -24,7 +27,12 @@ class LoopSearch:
         `run.compile` says so, as the tracker's)."""
         self.config, self.tracking, self.iteration = config, tracking, iteration
         self.views = KeyframeViews(len(config.verify_iters), tracking.align_min_silhouette)
-        self.sightings: list[Sighting] = []  # loops the last `confirm_keyframes` keyframes verified
+        self._recent: deque[list[Sighting]] = deque(maxlen=config.confirm_keyframes)  # per search, oldest first
+
+    @property
+    def sightings(self) -> list[Sighting]:
+        """The loops the last `confirm_keyframes` searches verified."""
+        return [sighting for search in self._recent for sighting in search]
 
     def kept(self, keyframes: list[Keyframe], intrinsics: torch.Tensor) -> list[SourcePoints]:
         """The newest of `keyframes` (the store, oldest first) was just kept: its view made (and
@@ -40,19 +48,40 @@ class LoopSearch:
         """The newest keyframe (`sources`) at the relative pose the estimates give it from the one
         before: the normal equations there, one linearisation at the finest level, judged as a
         verification is (the estimates are tracking's and mapping's; this only weighs them)."""
+        return self._to_previous(keyframes, sources, intrinsics, ODOMETRY_SCHEDULE)
+
+    def step_from_previous(
+        self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor
+    ) -> Verification:
+        """The newest of `keyframes` (`sources`), a frame tracking lost against the map, aligned
+        to the keyframe before it over the whole verification schedule, from the estimates'
+        relative pose: its step from that keyframe measured against the keyframe's own image."""
+        return self._to_previous(keyframes, sources, intrinsics, self.config.verify_iters)
+
+    def _to_previous(
+        self,
+        keyframes: list[Keyframe],
+        sources: list[SourcePoints],
+        intrinsics: torch.Tensor,
+        schedule: tuple[int, ...],
+    ) -> Verification:
         previous, current = keyframes[-2], keyframes[-1]
         start = relative_pose(previous, current).to(sources[0].points.device)
         config, tracking = self.config, self.tracking
-        return verify(
-            sources, self.views, previous, start, intrinsics, config, tracking, ODOMETRY_SCHEDULE, self.iteration
-        )
+        return verify(sources, self.views, previous, start, intrinsics, config, tracking, schedule, self.iteration)
 
     def detect(
-        self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor, pixels: torch.Tensor
+        self,
+        keyframes: list[Keyframe],
+        sources: list[SourcePoints],
+        intrinsics: torch.Tensor,
+        pixels: torch.Tensor,
+        lost: bool = False,
     ) -> LoopDetection:
         """The loops of the newest keyframe (`sources`; `pixels`: flat indices of its sampled
-        valid depth, for the candidates' overlap), confirmed by one another or by the loops the
-        keyframes before verified (`detect_loops`); its own verified loops kept for the next."""
+        valid depth, for the candidates' overlap; `lost`: a frame tracking lost), confirmed by
+        one another or by the loops the searches before verified (`detect_loops`); its own
+        verified loops kept for the next."""
         detection = detect_loops(
             keyframes,
             self.views,
@@ -63,8 +92,7 @@ class LoopSearch:
             self.tracking,
             self.sightings,
             self.iteration,
+            lost,
         )
-        recent = {keyframe.pose.position for keyframe in keyframes[len(keyframes) - self.config.confirm_keyframes :]}
-        everything = [*self.sightings, *detection.sightings(keyframes)]
-        self.sightings = [sighting for sighting in everything if sighting.current in recent]
+        self._recent.append(detection.sightings(keyframes))
         return detection

@@ -2,8 +2,9 @@
 
 It holds the map, the keyframes and the random state of mapping, and takes the tracked frames
 (`TrackedFrame`) in order; what it did with each comes back as a `MappedFrame`. A frame whose
-tracking was judged lost is never mapped (`skip`). Loop closure, when on, runs at each keyframe
-kept (`LoopCloser`; off, a `NoLoopCloser` that does nothing).
+tracking was judged lost is never mapped: with loop closure on it is searched for a loop
+(`_lost`). Loop closure, when on, runs at each keyframe kept (`LoopCloser`; off, a
+`NoLoopCloser` that does nothing).
 """
 
 from __future__ import annotations
@@ -133,11 +134,13 @@ class MappingBackend:
         the run's last, kept as a keyframe; so is one the tracking side chose, and every
         `keyframes.every`-th frame given); publish the new version."""
         frame, c2w = tracked.frame, tracked.c2w
-        self.intrinsics = frame.intrinsics
         if tracked.ready is not None:
             torch.cuda.current_stream().wait_event(tracked.ready)
             for tensor in (frame.color, frame.depth, frame.intrinsics, c2w):
                 tensor.record_stream(torch.cuda.current_stream())
+        if tracked.lost:
+            return self._lost(tracked)
+        self.intrinsics = frame.intrinsics
         keeps = (
             tracked.keyframe or is_last or self.frames_seen - self.last_keyframe_seen >= self.settings.keyframes.every
         )
@@ -268,9 +271,24 @@ class MappingBackend:
             self.refine(renders)
         return self._passed(0, 0.0, self.clock.read().get("mapping", 0.0), False)
 
-    def skip(self) -> MappedFrame:
-        """Pass a tracked frame on without mapping it (tracking judged it lost)."""
-        return self._passed(0, 0.0, 0.0, False)
+    def _lost(self, tracked: TrackedFrame) -> MappedFrame:
+        """A frame tracking judged lost: never densified nor mapped. With loop closure on it is
+        searched for a loop (`LoopCloser.frame_lost`); where one is accepted, the frame is kept
+        as a keyframe at the pose the loop gives it and the map moves with the correction."""
+        frame = tracked.frame
+        if self.gaussians is None or not self.keyframes or not self.loops.searches_lost_frames:
+            return self._passed(0, 0.0, 0.0, False)
+        with self.clock.stage("mapping"):
+            lost = Keyframe.of(frame.index, frame.color, frame.depth, tracked.c2w, tracked.position)
+            found = self.loops.frame_lost(self.gaussians, self.keyframes, lost, frame.intrinsics)
+            if found is not None:
+                self.gaussians, store = found
+                self.keyframes = store[:-1]
+                self._keep(store[-1])
+        if found is not None:
+            self.publish()
+        closed = self.loops.map_published(self.device)
+        return self._passed(0, 0.0, self.clock.read().get("mapping", 0.0), False, closed)
 
     def _passed(
         self, added: int, densify_s: float, mapping_s: float, mapped: bool, closed: tuple[ClosedLoop, ...] = ()

@@ -128,10 +128,17 @@ class MappingProcess:
         return version
 
     def hand_over(
-        self, frame: DeviceFrame, c2w: torch.Tensor, position: int, is_last: bool, keyframe: bool = False
+        self,
+        frame: DeviceFrame,
+        c2w: torch.Tensor,
+        position: int,
+        is_last: bool,
+        keyframe: bool = False,
+        lost: bool = False,
     ) -> bool:
         """Give a tracked frame (pose `c2w` [4, 4] camera-to-world, `position` among the run's
-        poses; `keyframe`: chosen as one by the tracking side) to mapping. Offline it waits
+        poses; `keyframe`: chosen as one by the tracking side; `lost`: judged lost, to be searched
+        for a loop, never mapped) to mapping. Offline it waits
         for a free ring slot (a bound on tracking's lead); live it never waits. -> whether the
         frame was handed over (live: False when mapping holds every slot)."""
         self.check()
@@ -142,7 +149,7 @@ class MappingProcess:
             slot = ring.put(frame, c2w, WATCH_S)
         if slot is None:
             return False
-        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last, keyframe))
+        self.to_mapping.put(m.MapFrame(slot, frame.index, position, frame.timestamp, is_last, keyframe, lost))
         self.handed.append(frame.index)
         return True
 

@@ -202,10 +202,10 @@ class MappingLoop:
         assert self.ring is not None
         slot = self.ring.take(handed.slot)
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
-        tracked = TrackedFrame(frame, slot.c2w, handed.position, keyframe=handed.keyframe)
+        tracked = TrackedFrame(frame, slot.c2w, handed.position, keyframe=handed.keyframe, lost=handed.lost)
         done = self.backend.map(tracked, is_last=handed.is_last)
         self._publish()
-        report = m.FrameMapped(handed.index, True, done.added, done.densify_s, done.mapping_s, done.closed)
+        report = m.FrameMapped(handed.index, done.mapped, done.added, done.densify_s, done.mapping_s, done.closed)
         self.setup.outbox.put(report)
 
     def _refine(self) -> None:

@@ -89,6 +89,7 @@ class MapFrame:
     timestamp: float
     is_last: bool  # the last frame of a dataset: kept as a keyframe
     keyframe: bool = False  # chosen as a keyframe by the tracking side (mapping.rate=keyframe)
+    lost: bool = False  # judged lost by tracking: searched for a loop (loops on), never mapped
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,7 @@ class FrameMapped:
     """What mapping did with a frame handed to it."""
 
     index: int
-    mapped: bool  # False: passed over (live: a newer frame was waiting)
+    mapped: bool  # False: passed over (live: a newer frame was waiting), or lost (only searched for a loop)
     added: int  # Gaussians added by its densification
     densify_s: float
     mapping_s: float

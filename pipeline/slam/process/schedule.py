@@ -122,7 +122,8 @@ class ProcessSplaTAM:
     def step(self, frame: DeviceFrame, is_last: bool = False) -> FrameResult:
         """Track `frame` against the newest map version (the first frame starts the map at the
         identity), then hand it to the mapping process unless it is lost (at keyframe rate:
-        unless it is lost or no keyframe). The first frame's step ends once its map is
+        unless it is lost or no keyframe; a lost frame goes, to be searched for a loop, when
+        loops are on). The first frame's step ends once its map is
         published, so the frame taken after that wait is the newest (live), as under the
         sequential schedule. MappingProcessFailed before tracking, never after."""
         self.mapping.check()
@@ -135,6 +136,8 @@ class ProcessSplaTAM:
             self._scene_radius = scene_radius_of(frame.depth, self.config.mapping)
             self._intrinsics = frame.intrinsics.cpu()
         try:
+            if result.lost and self.config.loops.enabled:
+                self.mapping.hand_over(frame, tracked.c2w, tracked.position, is_last, lost=True)
             result.mapped = not result.lost and self._hand_over(tracked, result, is_last, caught_up)
             if first and result.mapped:
                 self._warm_tracker(frame)

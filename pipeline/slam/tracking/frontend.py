@@ -155,7 +155,8 @@ class TrackingFrontend:
         if frame.received_at is not None:
             result.received_at = frame.received_at
             result.age_at_start_s = started - frame.received_at
-        return TrackingOutcome(TrackedFrame(frame, attempt.c2w, len(self.trajectory) - 1, ready), result)
+        tracked = TrackedFrame(frame, attempt.c2w, len(self.trajectory) - 1, ready, lost=bool(result.lost))
+        return TrackingOutcome(tracked, result)
 
     @staticmethod
     def _anchor(latest: MapVersion | None) -> KeyframePose | None:
