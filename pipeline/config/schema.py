@@ -183,7 +183,7 @@ class LoopConfig:
     min_similarity: float = 0.5  # and the descriptors' correlation (-1 to 1) is at least this
     appearance_similarity: float = 0.8  # beyond the estimates' reach (radius, angle, overlap), a candidate by its look alone: this correlation at least (the cabinet's real revisit: 0.86-0.93) ...
     drift_fraction: float = 0.3  # ... and its camera centre within radius_m + this x the path travelled since it (as far as the estimates may have drifted)
-    appearance_offset_m: float = 0.2  # such a candidate is verified from the identity and from the camera moved this far sideways and along its axis (a 3 x 3 grid), the closest fit kept
+    appearance_offset_m: float = 0.2  # such a candidate is verified from the identity and from the camera moved this far sideways and along its axis (a 3 x 3 grid), the best at the coarse levels goes on to the finest
     max_candidates: int = 3  # candidates verified per keyframe, most similar first
     verify_iters: tuple[int, ...] = (30, 10, 5)  # verification: alignment iterations per pyramid level, coarse to fine
     min_coverage: float = 0.3  # verified: inliers / valid-depth pixels of the current keyframe at least this

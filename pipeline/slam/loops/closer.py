@@ -226,12 +226,12 @@ class LoopCloser:
         solution = optimise(graph, self.config)
         state.tally = state.tally.optimised(solution)
         state.loops = [edge for edge in solution.graph.edges if edge.loop]
-        if not solution.changed:
+        kept_now = [e for e in solution.kept if e.second == node]
+        if not kept_now:  # the optimum drops this search's loops: the graph as it was (its earlier loops hold already)
             return None
         state.node_c2w = solution.c2w
         moves = corrections(graph.c2w, solution.c2w)
         largest = max((motion_size(c) for c in moves), key=lambda size: size.translation_m)
-        kept_now = [e for e in solution.kept if e.second == node]
         matched = tuple(self._frame_of(e.first, keyframes) for e in kept_now)
         seconds = time.perf_counter()
         closed = ClosedLoop(current.index, matched, largest, detected - started, seconds - detected, 0.0)

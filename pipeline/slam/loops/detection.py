@@ -30,7 +30,14 @@ from pipeline.slam.loops.candidates import LoopCandidate, loop_candidates
 from pipeline.slam.loops.pose_graph import Edge, GraphSolution, MotionSize, alignment_information, motion_size
 from pipeline.slam.loops.views import KeyframeViews
 from pipeline.slam.tracking.align_tracker import SolveReport, level_params, read_report
-from pipeline.slam.tracking.rgbd_alignment import AlignIteration, SourcePoints, align, lm_iteration
+from pipeline.slam.tracking.rgbd_alignment import (
+    AlignIteration,
+    AlignParams,
+    SourcePoints,
+    TargetMaps,
+    align,
+    lm_iteration,
+)
 
 NO_INFORMATION = torch.zeros(6, 6, dtype=torch.float64)  # of a verification that failed at its coarse levels
 
@@ -210,7 +217,7 @@ def verify(
     sources: Sequence[SourcePoints],
     views: KeyframeViews,
     old: Keyframe,
-    start: torch.Tensor,
+    starts: torch.Tensor,
     intrinsics: torch.Tensor,
     config: LoopConfig,
     tracking: TrackingConfig,
@@ -218,27 +225,48 @@ def verify(
     iteration: AlignIteration = lm_iteration,
 ) -> Verification:
     """Align the current keyframe (`sources`, its pyramid as points, finest first) to `old` (its
-    stored colour and depth as the target, `views`) from the relative pose `start` [4, 4]
-    float64 (the current camera in the old one's, as the estimates put them), over `schedule`
-    (default `verify_iters`): the coarse levels first, judged (`judged` at level 1), and only a
-    candidate that passes them at the finest level, judged in full."""
+    stored colour and depth as the target, `views`) from the relative pose(s) `starts` [4, 4] or
+    [S, 4, 4] float64 (the current camera in the old one's: the estimates', or `start_poses`),
+    over `schedule` (default `verify_iters`): the coarse levels first from every start, judged
+    (`judged` at level 1); of the starts that pass them, only the one of least RMS residual goes
+    on to the finest level, judged in full (the finest level and its target, made again for an
+    old keyframe, are most of a verification's cost: once per candidate, not once per start).
+    None passing: the first start's failure."""
     schedule = schedule or config.verify_iters
     params = level_params(tracking, len(schedule))
+    start = starts.reshape(-1, 4, 4)
     if len(schedule) > 1:
-        state = align(sources[1:], views.coarse(old), params[1:], schedule[:-1], iteration, start=start)
-        report = read_report(state, sources[1].valid)
-        failure = judged(report, config, tracking, level=1)
-        if failure:
-            return Verification(
-                report, report.inliers / max(report.valid, 1), state.pose.cpu(), NO_INFORMATION, failure
-            )
-        start = state.pose
+        fits = [
+            _coarse_fit(sources, views.coarse(old), params, schedule, s, config, tracking, iteration) for s in start
+        ]
+        passing = [fit for fit in fits if not fit.failure]
+        if not passing:
+            return fits[0]
+        start = min(passing, key=lambda fit: fit.report.rms_m).relative[None].to(start)
     finest = views.finest(old, intrinsics)
-    state = align(sources[:1], [finest], params[:1], schedule[-1:], iteration, start=start)
+    state = align(sources[:1], [finest], params[:1], schedule[-1:], iteration, start=start[0])
     report = read_report(state, sources[0].valid)
     information = alignment_information(state.fit.hessian, state.pose, config.information_scale)
     coverage = report.inliers / max(report.valid, 1)
     return Verification(report, coverage, state.pose.cpu(), information, judged(report, config, tracking))
+
+
+def _coarse_fit(
+    sources: Sequence[SourcePoints],
+    coarse: Sequence[TargetMaps],
+    params: Sequence[AlignParams],
+    schedule: tuple[int, ...],
+    start: torch.Tensor,
+    config: LoopConfig,
+    tracking: TrackingConfig,
+    iteration: AlignIteration,
+) -> Verification:
+    """The coarse levels (1 and up) of a verification from `start` [4, 4] float64, judged at
+    level 1 (no information: an edge is made at the finest level only)."""
+    state = align(sources[1:], coarse, params[1:], schedule[:-1], iteration, start=start)
+    report = read_report(state, sources[1].valid)
+    failure = judged(report, config, tracking, level=1)
+    return Verification(report, report.inliers / max(report.valid, 1), state.pose.cpu(), NO_INFORMATION, failure)
 
 
 def relative_pose(old: Keyframe, current: Keyframe) -> torch.Tensor:
@@ -261,13 +289,6 @@ def start_poses(candidate: LoopCandidate, old: Keyframe, current: Keyframe, conf
     offsets = sorted(((x, z) for x in (-step, 0.0, step) for z in (-step, 0.0, step)), key=lambda o: o != (0.0, 0.0))
     twists = torch.tensor([[0.0, 0.0, 0.0, x, 0.0, z] for x, z in offsets], dtype=torch.float64)
     return torch.stack([se3_exp(twist) for twist in twists]).to(estimates)
-
-
-def closest_fit(verifications: Sequence[Verification]) -> Verification:
-    """Of one candidate's verifications from several starts, the verified one of least RMS
-    residual, else the first (the identity's or the estimates')."""
-    verified = [verification for verification in verifications if not verification.failure]
-    return min(verified, key=lambda verification: verification.report.rms_m) if verified else verifications[0]
 
 
 def implied_pose(old: Keyframe, relative: torch.Tensor) -> torch.Tensor:
@@ -326,12 +347,17 @@ def detect_loops(
     (`agree`); `lost`: the newest is a frame tracking lost (`loop_candidates`)."""
     current = keyframes[-1]
     candidates = loop_candidates(keyframes, views.descriptors(list(keyframes)), intrinsics, pixels, config, lost)
+    device = sources[0].points.device
     verifications = [
-        closest_fit(
-            [
-                verify(sources, views, keyframes[c.position], start, intrinsics, config, tracking, iteration=iteration)
-                for start in start_poses(c, keyframes[c.position], current, config).to(sources[0].points.device)
-            ]
+        verify(
+            sources,
+            views,
+            keyframes[c.position],
+            start_poses(c, keyframes[c.position], current, config).to(device),
+            intrinsics,
+            config,
+            tracking,
+            iteration=iteration,
         )
         for c in candidates
     ]

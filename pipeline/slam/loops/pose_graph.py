@@ -68,10 +68,6 @@ class GraphSolution:
     residuals: tuple[MotionSize, ...]  # of the kept loops, at the solution
     graph: PoseGraph  # the graph to keep: nodes at `c2w`, the dropped loops gone
 
-    @property
-    def changed(self) -> bool:
-        return bool(self.kept)
-
 
 def chained(c2w: torch.Tensor, odometry_information: torch.Tensor, loops: tuple[Edge, ...]) -> PoseGraph:
     """Nodes at `c2w` [K, 4, 4] float64, an odometry edge from each node to the next at the
