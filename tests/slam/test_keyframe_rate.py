@@ -212,3 +212,26 @@ def test_after_a_resume_the_gap_counts_from_the_newest_keyframe_restored(replica
         assert resumed.chooser.last.index == 4
     finally:
         resumed.close()
+
+
+@pytest.mark.slow
+def test_with_loops_on_the_process_schedule_hands_a_lost_frame_to_mapping_to_be_searched(replica_seq: Path) -> None:
+    """Loops on, frame 2 lost: the mapping process is handed it too, searches it for a loop (no
+    loop in four frames) and reports it not mapped; it is neither densified nor kept."""
+    overrides = [*GAP_ONLY, "loops.enabled=true"]
+    config = with_dataset_defaults(load_config("tiny", overrides=overrides), "replica")
+    slam = start_process_slam(config, CPU, live=False)
+    _losing_frame_2(slam)
+    frames = _frames(replica_seq)[:4]
+    try:
+        results = [slam.step(frame, is_last=frame.index == 3) for frame in frames]
+        assert slam.finish(0) == 0
+        assert [bool(r.lost) for r in results] == [False, False, True, False]
+        assert [(report.index, report.mapped, report.added) for report in slam.mapping.mapped] == [
+            (0, True, slam.mapping.mapped[0].added), (2, False, 0), (3, True, slam.mapping.mapped[2].added),
+        ]  # fmt: skip
+        checkpoint = slam.checkpoint()
+        assert [k.index for k in checkpoint.keyframes] == [0, 3]
+        assert checkpoint.mapping.loops is not None and checkpoint.mapping.loops.tally.searches == 3
+    finally:
+        slam.close()
