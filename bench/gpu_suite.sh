@@ -61,9 +61,10 @@ for part in "$@"; do
                 --set dataset.width=640 --set dataset.height=480 --stem drift_odometry_loops_cabinet ;;
     drift-lost)  # issue 35: loops searched from lost frames too (the cabinet's revisit is lost); carry as drift-odometry-loops
               bench "$cabinet" --presets tiny \
-                --variants process-odometry,process-odometry-loops,process-loops,sequential-odometry,sequential-odometry-loops \
+                --variants ${LOST_VARIANTS:-process-odometry,process-odometry-loops,process-loops,sequential-odometry,sequential-odometry-loops} \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_lost_cabinet ;;
     loops-tiny) bench synthetic-loops synthetic-trap --presets tiny --variants default,loops --stem loops_tiny ;;
+    loops-trap) bench synthetic-trap --presets tiny --variants default,loops --stem loops_trap_tiny ;;  # no loop may close
     warm-start-synthetic)  # warm-start on the generated TUM-like scene (640x480): no dataset to carry
               bench synthetic-tum --presets tiny --variants sequential-keyframe,process --repeats 2 \
                 --set synthetic.frames=40 --stem warm_start_synthetic_tiny ;;
