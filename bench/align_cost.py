@@ -1,6 +1,4 @@
-"""GPU time of one `align` solve: eager, compiled (one graph for every pyramid level, as runs
-compile it on CUDA; and per level, a graph for each level's size, as on the CPU and before #34's
-Change 21), and captured as a CUDA graph.
+"""GPU time of one `align` solve: eager, compiled, and captured as a CUDA graph.
 
 The solve is what the align tracker does after its one render: the two image pyramids, the
 coarse-to-fine Levenberg-Marquardt iterations (tracking.align_iters) and nothing read back.
@@ -129,13 +127,11 @@ def measure(width: int, height: int, repeats: int, device: torch.device) -> dict
         return rendered  # never called: prepare() takes the render itself
 
     eager = solver(AlignTracker(shows_the_view, config, 0.01, 100.0), frame, rendered)
-    one_graph = make_kernels(compiled=True, one_align_graph=True).align_iteration
-    compiled = solver(AlignTracker(shows_the_view, config, 0.01, 100.0, one_graph), frame, rendered)
-    per_level_iteration = make_kernels(compiled=True, one_align_graph=False).align_iteration
-    per_level = solver(AlignTracker(shows_the_view, config, 0.01, 100.0, per_level_iteration), frame, rendered)
-    variants = {"eager": eager, "compiled": compiled, "compiled per level": per_level}
+    compiled_iteration = make_kernels(compiled=True).align_iteration
+    compiled = solver(AlignTracker(shows_the_view, config, 0.01, 100.0, compiled_iteration), frame, rendered)
+    variants = {"eager": eager, "compiled": compiled}
     if cuda:
-        variants.update({"graph": eager, "compiled+graph": compiled, "compiled per level+graph": per_level})
+        variants.update({"graph": eager, "compiled+graph": compiled})
     row: dict[str, Any] = {"size": f"{width}x{height}", "align_iters": list(config.align_iters)}
     for name, solve in variants.items():
         try:

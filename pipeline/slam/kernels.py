@@ -16,14 +16,7 @@ import torch
 
 from pipeline.compile_cache import persist_compile_cache
 from pipeline.slam.losses import ssim
-from pipeline.slam.tracking.rgbd_alignment import (
-    AlignIteration,
-    LevelParams,
-    LmState,
-    SourcePoints,
-    TargetMaps,
-    lm_iteration,
-)
+from pipeline.slam.tracking.rgbd_alignment import AlignIteration, lm_iteration
 
 
 def tracking_loss(
@@ -65,41 +58,22 @@ def mapping_loss(
 class SlamKernels:
     tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     mapping_loss: Callable[..., torch.Tensor]
-    align_iteration: AlignIteration  # one Levenberg-Marquardt iteration of the align tracker (any level)
+    align_iteration: AlignIteration  # one Levenberg-Marquardt iteration of the align tracker (per level)
 
 
-def at_any_level_size(iteration: AlignIteration) -> AlignIteration:
-    """`iteration` (compiled) called with the pyramid level's size marked dynamic (the source's
-    M points, the maps' h x w), so that dynamo traces one graph for every level, schedule and
-    loop verification instead of one per level size; the level's gate is a tensor already
-    (`LevelParams`). Marked at every call: a level's tensors are new each frame."""
-
-    def at_any_size(state: LmState, source: SourcePoints, target: TargetMaps, params: LevelParams) -> LmState:
-        for tensor in source:  # [M, ...]
-            torch._dynamo.mark_dynamic(tensor, 0)
-        torch._dynamo.mark_dynamic(target.maps, (1, 2))  # [10, h, w]
-        return iteration(state, source, target, params)
-
-    return at_any_size
-
-
-def make_kernels(compiled: bool, one_align_graph: bool | None = None) -> SlamKernels:
+def make_kernels(compiled: bool) -> SlamKernels:
     """The kernels, compiled or not; compiled ones are cached in the user's cache folder
-    (`compile_cache`), so that the next run on this machine does not compile them again.
-    `one_align_graph`: the align iteration compiled once for every level's size
-    (`at_any_level_size`) rather than once per size; by default on CUDA only, since on the CPU
-    inductor's C++ sums compile a second graph for levels over 4096 pixels anyway, and the
-    size-generic code ran 3-12% slower there (bench/NOTES.md, Change 21)."""
+    (`compile_cache`), so that the next run on this machine does not compile them again. The
+    align iteration compiles once per pyramid level's size: compiled for any size (one graph) it
+    ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome)."""
     if not compiled:
         return SlamKernels(tracking_loss, mapping_loss, lm_iteration)
     cuda = torch.cuda.is_available()
     persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
-    align_iteration = torch.compile(lm_iteration, dynamic=False)
-    one_graph = cuda if one_align_graph is None else one_align_graph
     return SlamKernels(
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),
-        at_any_level_size(align_iteration) if one_graph else align_iteration,
+        torch.compile(lm_iteration, dynamic=False),
     )
 
 

@@ -18,10 +18,9 @@ from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import Camera, Gaussians, RenderOutput, make_capacity_renderer, make_renderer
 from pipeline.slam.gaussian_map import seed_gaussians
-from pipeline.slam.kernels import make_kernels
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking.align_tracker import AlignTracker, fitting_schedule, level_params, prepare_rgbd
-from pipeline.slam.tracking.rgbd_alignment import align, lm_iteration, lm_start
+from pipeline.slam.tracking.align_tracker import AlignTracker, fitting_schedule
+from pipeline.slam.tracking.rgbd_alignment import lm_iteration, lm_start
 from pipeline.slam.tracking.trackers import TrackSettings, make_tracker
 from pipeline.stages.upload import host_frame_tensors
 
@@ -278,35 +277,6 @@ def test_the_iteration_traces_as_one_graph_that_matches_the_eager_one() -> None:
     torch.testing.assert_close(fast.pose, eager.pose, atol=1e-6, rtol=0)
     torch.testing.assert_close(fast.fit.cost, eager.fit.cost, rtol=1e-5, atol=0)
     assert not torch.equal(eager.pose, torch.eye(4, dtype=torch.float64))
-
-
-@pytest.mark.slow
-def test_the_compiled_iteration_is_one_graph_for_every_level_and_schedule() -> None:
-    """run.compile's iteration as CUDA runs compile it (inductor, `one_align_graph`) compiles
-    once for the four levels of a pyramid, of four sizes and four depth gates, and for a loop
-    verification's schedule over the coarse levels alone, from one of its starts; each compile
-    costs seconds of a run's start (#34). The results agree with eager. 64x48: on the CPU,
-    inductor's C++ sums compile a second graph for levels of over 4096 pixels (summed in chunks
-    there; the GPU's code has no such split)."""
-    width, height = 64, 48
-    color, depth = ray_cast(START @ motion(0.03, 2.0, 0), width, height)
-    render_color, render_depth = ray_cast(START, width, height)
-    k = torch.from_numpy(default_intrinsics(width, height)).float()
-    config = tiny_settings(None, "align").config
-    images = (color, depth, k, render_color, render_depth, (render_depth > 0).float())
-    sources, targets = prepare_rgbd(*images, 4, config.align_min_silhouette)
-    params = level_params(config, 4)
-    torch._dynamo.reset()  # else a compile that an earlier test of this process made is reused
-    iteration = make_kernels(compiled=True, one_align_graph=True).align_iteration
-    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    solves = [align(sources, targets, params, (3, 3, 3, 3), it) for it in (iteration, lm_iteration)]
-    starts = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)  # [S, 4, 4], as a verification's starts
-    coarse = [align(sources[1:], targets[1:], params[1:], (3, 3, 3), it, starts[1]) for it in (iteration, lm_iteration)]
-    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1
-    for fast, eager in (solves, coarse):
-        torch.testing.assert_close(fast.pose, eager.pose, atol=1e-6, rtol=0)
-        torch.testing.assert_close(fast.fit.cost, eager.fit.cost, rtol=1e-5, atol=0)
-        assert not torch.equal(eager.pose, torch.eye(4, dtype=torch.float64))
 
 
 @pytest.mark.slow
