@@ -133,8 +133,10 @@ class LoopCloser:
         measured first against that keyframe's image (`LoopSearch.step_from_previous`); where a
         loop is accepted, the frame becomes a keyframe (a node of the graph; it seeds no Gaussian)
         at that pose and the loop is closed. -> the map and the store (the frame kept, oldest
-        first; moved where the loop closed, recorded when that map is published), or None:
-        nothing accepted, nothing changed but the sightings kept for the next search."""
+        first, moved with the correction, recorded when that map is published), or None: no
+        loop accepted, or the graph's optimum dropped it (the frame's node is taken out again,
+        so that a view placed by its step from a drifted keyframe never joins the map's
+        keyframes); nothing changed but the tally and the sightings kept for the next search."""
         if not keyframes:
             return None
         started = time.perf_counter()
@@ -147,8 +149,13 @@ class LoopCloser:
         detection = self._detect(trial, sources, intrinsics, started, lost=True)
         if not detection.accepted:
             return None
+        before = replace(self.state, node_positions=list(self.state.node_positions), loops=list(self.state.loops))
         self._add_node(trial, sources, intrinsics)
-        return self._corrected(gaussians, trial, self._closed(trial, detection, started))
+        correction = self._closed(trial, detection, started)
+        if correction is None:  # the optimum dropped its loops: a frame placed by its step alone is no keyframe
+            self.state = replace(before, tally=self.state.tally)
+            return None
+        return self._corrected(gaussians, trial, correction)
 
     def _corrected(
         self, gaussians: Gaussians, keyframes: list[Keyframe], correction: Correction | None
