@@ -1,6 +1,7 @@
 """Loop closure inside the mapping side: a node of the keyframe pose graph for every keyframe
-kept, the loop search at each (`loop_closure.detect_loops`), and, when the graph's optimum keeps
-an accepted loop, the corrected keyframe poses with the map moved along.
+kept, the loop search at each (`detection.detect_loops`) and at each frame tracking lost
+(`frame_lost`: a node only where its loop closes), and, when the graph's optimum keeps an
+accepted loop, the corrected keyframe poses with the map moved along.
 
 Each Gaussian remembers the node of the keyframe that created it (`LoopState.creator`): one
 seeded by a frame that becomes a keyframe belongs to that keyframe's node; one seeded by another
