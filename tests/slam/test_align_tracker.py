@@ -270,10 +270,9 @@ def test_the_iteration_traces_as_one_graph_that_matches_the_eager_one() -> None:
     compiled = torch.compile(lm_iteration, backend="eager", fullgraph=True, dynamic=False)
     eager = lm_start(torch.eye(4, dtype=torch.float64))
     fast = eager
-    params = tracker.params[0].on(CPU)
     for _ in range(3):
-        eager = lm_iteration(eager, sources[0], targets[0], params)
-        fast = compiled(fast, sources[0], targets[0], params)
+        eager = lm_iteration(eager, sources[0], targets[0], tracker.params[0])
+        fast = compiled(fast, sources[0], targets[0], tracker.params[0])
     torch.testing.assert_close(fast.pose, eager.pose, atol=1e-6, rtol=0)
     torch.testing.assert_close(fast.fit.cost, eager.fit.cost, rtol=1e-5, atol=0)
     assert not torch.equal(eager.pose, torch.eye(4, dtype=torch.float64))

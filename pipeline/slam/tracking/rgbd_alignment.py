@@ -14,10 +14,8 @@ Both are divided by their scales (`AlignParams`) and weighted by Huber's functio
 part (an inlier) when the target is valid around its projection and |r_g| is under the depth gate.
 Jacobians are for a left perturbation T <- exp(xi) T with xi = (rotation, translation).
 
-Shapes are fixed within a level (masks instead of selections, the step chosen with torch.where)
-and nothing is read back, so one iteration (`lm_iteration`) compiles whole; what differs between
-levels is their size and their gate, a tensor (`LevelParams`), so that one compiled graph serves
-every level (on CUDA kernels.py marks the size dynamic: `make_kernels`).
+Shapes are static throughout (masks instead of selections, the step chosen with torch.where),
+so one iteration (`lm_iteration`) can be compiled per pyramid level; nothing is read back.
 """
 
 from __future__ import annotations
@@ -49,32 +47,6 @@ class AlignParams(NamedTuple):
     color_sigma: float  # intensity: the same for the photometric residual
     photometric_weight: float  # the photometric term's weight against the geometric one
     max_depth_diff: float  # metres: the gate on |r_g|
-
-    def on(self, device: torch.device) -> LevelParams:
-        """As the iteration reads them: the gate and the cost of a pixel outside it as 0-d tensors on `device`."""
-        outlier_cost = _huber_at(self.max_depth_diff / self.depth_sigma) + self.photometric_weight * _huber_at(
-            1 / self.color_sigma
-        )
-        return LevelParams(
-            self.depth_sigma,
-            self.color_sigma,
-            self.photometric_weight,
-            torch.full((), self.max_depth_diff, device=device),  # a fill, not a host copy: capturable
-            torch.full((), outlier_cost, device=device),
-        )
-
-
-class LevelParams(NamedTuple):
-    """One level's `AlignParams` as `lm_iteration` reads them. The numbers that differ between
-    pyramid levels are tensors, not Python numbers (which a compiled graph holds as constants), so
-    that every level and every schedule runs one graph; the scales, the same at every level, stay
-    numbers."""
-
-    depth_sigma: float  # metres
-    color_sigma: float  # intensity
-    photometric_weight: float
-    max_depth_diff: torch.Tensor  # [] float32, metres: the gate on |r_g|
-    outlier_cost: torch.Tensor  # [] float32: the robust cost of a pixel that is not an inlier
 
 
 class SourcePoints(NamedTuple):
@@ -236,11 +208,8 @@ class Association(NamedTuple):
     inlier: torch.Tensor  # [M] bool: associated and within the depth gate
 
 
-def associate(
-    pose: torch.Tensor, source: SourcePoints, target: TargetMaps, max_depth_diff: torch.Tensor
-) -> Association:
-    """Projective association at the motion `pose` [4, 4] (float64, source camera -> target
-    camera), inliers within the gate `max_depth_diff` [] metres."""
+def associate(pose: torch.Tensor, source: SourcePoints, target: TargetMaps, max_depth_diff: float) -> Association:
+    """Projective association at the motion `pose` [4, 4] (float64, source camera -> target camera)."""
     rotation, translation = pose[:3, :3].float(), pose[:3, 3].float()
     points = source.points @ rotation.T + translation
     in_front = source.valid & (points[:, 2] > MIN_DEPTH)
@@ -256,19 +225,21 @@ def associate(
     return Association(points, normals, sampled[:, GRADIENT], r_geometric, r_photometric, associated, inlier)
 
 
-def robust_cost(pair: Association, valid: torch.Tensor, params: LevelParams) -> torch.Tensor:
+def robust_cost(pair: Association, valid: torch.Tensor, params: AlignParams) -> torch.Tensor:
     """The cost that Levenberg-Marquardt compares between motions -> [] float64: per valid
     source pixel, Huber of both normalised residuals for an inlier, and for any other pixel the
-    most an inlier can cost (`outlier_cost`: so losing pixels never pays and the count of pixels
-    is fixed)."""
+    most an inlier can cost (so losing pixels never pays and the count of pixels is fixed)."""
+    most = _huber_at(params.max_depth_diff / params.depth_sigma) + params.photometric_weight * _huber_at(
+        1 / params.color_sigma
+    )
     cost = huber_cost(pair.r_geometric / params.depth_sigma) + params.photometric_weight * huber_cost(
         pair.r_photometric / params.color_sigma
     )
-    cost = torch.where(pair.inlier, cost.clamp(max=params.outlier_cost), params.outlier_cost)
+    cost = torch.where(pair.inlier, cost.clamp(max=most), torch.full_like(cost, most))
     return torch.where(valid, cost, torch.zeros_like(cost)).double().sum()
 
 
-def linearise(pose: torch.Tensor, source: SourcePoints, target: TargetMaps, params: LevelParams) -> Linearisation:
+def linearise(pose: torch.Tensor, source: SourcePoints, target: TargetMaps, params: AlignParams) -> Linearisation:
     """The weighted normal equations, cost and counts at the motion `pose` [4, 4] (float64,
     source camera -> target camera), residuals normalised by their scales."""
     pair = associate(pose, source, target, params.max_depth_diff)
@@ -323,7 +294,7 @@ def lm_start(pose: torch.Tensor) -> LmState:
     return LmState(pose, pose.clone(), torch.full_like(zero, INITIAL_DAMPING), fit)
 
 
-def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, params: LevelParams) -> LmState:
+def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, params: AlignParams) -> LmState:
     """Evaluate the candidate; keep it if its cost is no higher (else keep the pose and raise the
     damping); propose the next candidate from the kept linearisation."""
     fit = linearise(state.candidate, source, target, params)
@@ -335,7 +306,7 @@ def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, param
     return LmState(pose, candidate, damping, kept)
 
 
-AlignIteration = Callable[[LmState, SourcePoints, TargetMaps, LevelParams], LmState]
+AlignIteration = Callable[[LmState, SourcePoints, TargetMaps, AlignParams], LmState]
 
 
 def align(
@@ -350,12 +321,10 @@ def align(
     `targets` and `params` hold one entry per pyramid level, finest first; `schedule` the
     iterations per level, coarsest first. Each level starts from the best pose of the one before
     -> the finest level's last state."""
-    device = sources[0].points.device
-    pose = torch.eye(4, dtype=torch.float64, device=device) if start is None else start
+    pose = torch.eye(4, dtype=torch.float64, device=sources[0].points.device) if start is None else start
     state = lm_start(pose)
     for level, iterations in zip(reversed(range(len(sources))), schedule):
         state = lm_start(state.pose)
-        as_read = params[level].on(device)
         for _ in range(iterations):
-            state = iteration(state, sources[level], targets[level], as_read)
+            state = iteration(state, sources[level], targets[level], params[level])
     return state
