@@ -203,8 +203,10 @@ class MappingLoop:
         slot = self.ring.take(handed.slot)
         frame = DeviceFrame(handed.index, handed.timestamp, slot.color, slot.depth, slot.intrinsics, None)
         tracked = TrackedFrame(frame, slot.c2w, handed.position, keyframe=handed.keyframe, lost=handed.lost)
+        published = self.backend.latest
         done = self.backend.map(tracked, is_last=handed.is_last)
-        self._publish()
+        if self.backend.latest is not published:  # a lost frame searched in vain changes no map: no copy
+            self._publish()
         report = m.FrameMapped(handed.index, done.mapped, done.added, done.densify_s, done.mapping_s, done.closed)
         self.setup.outbox.put(report)
 
