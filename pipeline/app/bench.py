@@ -78,11 +78,11 @@ def run_matrix(
     profile: bool = False,
     on_report: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    """Run every cell on this machine's `device`, one after the other, each in a process of its
-    own; run folders (and the generated synthetic room) go under `runs`. A signal stops the
-    matrix after the cell it interrupted (whose run folder is written, or removed when it had
-    saved nothing): the report holds the cells run. `on_report` gets the report of the cells run so far after each cell (so that a
-    matrix killed midway keeps its finished cells)."""
+    """Run every cell on this machine's `device`, one after the other, each in a process of its own;
+    run folders (and the generated synthetic room) go under `runs`. A signal stops the matrix after
+    the cell it interrupted (whose run folder is written, or removed when it had saved nothing): the
+    report holds the cells run. `on_report` gets the report of the cells run so far after each cell
+    (so that a matrix killed midway keeps its finished cells)."""
     start = time.perf_counter()
     rows = []
     for done, cell in enumerate(cells):

@@ -131,15 +131,16 @@ def _excess(residual: MotionSize, config: LoopConfig) -> float:
 
 
 def optimise(graph: PoseGraph, config: LoopConfig) -> GraphSolution:
-    """The poses that best fit all edges, loops under a Cauchy kernel (`loop_kernel_width`, in
-    whitened units), solved from the least-squares optimum (every loop as a plain Gaussian edge):
-    from the drifted estimates themselves a real loop that drifted far (the cabinet's: 2 m and 44
-    degrees, hundreds of its sigmas) gets next to no weight under the kernel, the solve barely
-    moves and the loop is dropped; from the least-squares optimum it is kept and the keyframes
-    come back from 207 to 65 cm of error (bench/NOTES.md, Change 24). A loop the solution still misses by more than `max_loop_residual_m` or
-    `max_loop_residual_deg` is dropped (the worst first) and the graph solved again without it:
-    a false loop bends the whole trajectory, so it goes even if the kernel would have tamed it.
-    Without a loop edge that closes a loop (and after dropping them all) -> the input poses."""
+    """The poses that best fit all edges, loops under a Cauchy kernel (`loop_kernel_width`, in whitened
+    units), solved from the least-squares optimum (every loop as a plain Gaussian edge): from the
+    drifted estimates themselves a real loop that drifted far (the cabinet's: 2 m and 44 degrees,
+    hundreds of its sigmas) gets next to no weight under the kernel, the solve barely moves and the
+    loop is dropped; from the least-squares optimum it is kept and the keyframes come back from 207
+    to 65 cm of error (bench/NOTES.md, Change 24). A loop the solution still misses by more than
+    `max_loop_residual_m` or `max_loop_residual_deg` is dropped (the worst first) and the graph
+    solved again without it: a false loop bends the whole trajectory, so it goes even if the kernel
+    would have tamed it. Without a loop edge that closes a loop (and after dropping them all) -> the
+    input poses."""
     odometry = [edge for edge in graph.edges if not edge.loop]
     loops = [edge for edge in graph.edges if edge.closes_loop]
     dropped: list[Edge] = []
