@@ -66,8 +66,9 @@ def atomic_write(path: Path, write: Writer) -> None:
 
 
 def atomic_write_all(writes: Mapping[Path, Writer]) -> None:
-    """Write every file of `writes` to a temporary file, then replace the targets one by one.
-    If any write fails, no target is replaced and every temporary file is removed."""
+    """Write every file of `writes` to a temporary file, then replace the targets one by one, in
+    the order of `writes`. If any write fails, no target is replaced and every temporary file is
+    removed; a process killed between two replacements leaves the earlier targets new."""
     staged: list[tuple[str, Path]] = []
     try:
         for path, write in writes.items():

@@ -274,11 +274,12 @@ class RunFolder:
         """Trajectory (and reference), map and checkpoint of the run `run` describes, from a
         SLAM checkpoint on the host; `timestamps` [N] seconds and `reference` [N, 4, 4]
         camera-to-world per pose. All are replaced, or (a write failing, e.g. on a full disk)
-        none: the last complete set stays."""
+        none: the last complete set stays. The checkpoint is replaced last: a process killed
+        while the files are replaced one by one leaves the others one save ahead of it, never
+        behind, and a resume (which starts from the checkpoint) rewrites them all."""
         files = {
             self.trajectory: tum_trajectory_text(timestamps, checkpoint.poses.double().numpy()).encode(),
             self.map: gaussian_ply_bytes(checkpoint.gaussians),
-            self.checkpoint: checkpoint_bytes(checkpoint, run),
         }
         if reference is not None:
             files[self.groundtruth] = tum_trajectory_text(timestamps, reference).encode()
@@ -287,10 +288,12 @@ class RunFolder:
             tracked = checkpoint.poses if tracked is None else tracked
             files[self.trajectory_as_tracked] = tum_trajectory_text(timestamps, tracked.double().numpy()).encode()
             files[self.pose_graph] = pose_graph_text(loops).encode()
+        checkpoint_data = checkpoint_bytes(checkpoint, run)
         with self.exports.locked():
             record, rebuilt = self.exports.read()
             if self._mark_stale(record, checkpoint) or rebuilt:
                 files[self.exports_record] = text_of(record).encode()
+            files[self.checkpoint] = checkpoint_data  # last: see above
             atomic_write_all({path: bytes_writer(data) for path, data in files.items()})
         if loops is None:  # a resume without loop closure: its files would describe a shorter run
             for path in (self.trajectory_as_tracked, self.pose_graph):

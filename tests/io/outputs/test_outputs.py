@@ -18,6 +18,7 @@ from conftest import make_checkpoint
 from pipeline.errors import OutputError
 from pipeline.io.files import atomic
 from pipeline.io.files.atomic import atomic_export, atomic_write_all, bytes_writer, current_umask
+from pipeline.io.files.trajectory import read_tum_trajectory
 from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
 from pipeline.io.outputs.periodic_save import PeriodicSave
 from pipeline.io.outputs.run_description import RunDescription
@@ -84,6 +85,28 @@ def test_a_full_disk_keeps_the_last_complete_save(tmp_path: Path, monkeypatch: p
         folder.write_state(_checkpoint(3), ROOM, np.array([0.0, 0.1, 0.2]), None)
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # trajectory and checkpoint too
     assert folder.read_checkpoint()[0].frames_done == 2
+
+
+def test_a_save_killed_between_replacements_leaves_the_checkpoint_behind_never_ahead(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    folder = RunFolder(tmp_path)
+    folder.write_state(_checkpoint(2), ROOM, np.array([0.0, 0.1]), None)
+    real = atomic.os.replace
+    replaced: list[str] = []
+
+    def killed_at_the_checkpoint(source: str, target: Path) -> None:
+        if Path(target).name == "checkpoint.safetensors":
+            raise KeyboardInterrupt  # stands for SIGKILL: nothing after it is replaced
+        replaced.append(Path(target).name)
+        real(source, target)
+
+    monkeypatch.setattr(atomic.os, "replace", killed_at_the_checkpoint)
+    with pytest.raises(KeyboardInterrupt):
+        folder.write_state(_checkpoint(3), ROOM, np.array([0.0, 0.1, 0.2]), np.eye(4).repeat(3, 0).reshape(3, 4, 4))
+    assert {"trajectory.txt", "map.ply", "groundtruth.txt"} <= set(replaced)  # every other file went first
+    assert folder.read_checkpoint()[0].frames_done == 2
+    assert len(read_tum_trajectory(folder.trajectory)[0]) == 3  # one save ahead: a resume rewrites it
 
 
 class _Slam:
