@@ -188,3 +188,17 @@ def se3_exp(twist: torch.Tensor) -> torch.Tensor:
     translation = (eye[:3, :3] + b * w + c * w_sq) @ v
     top = torch.cat([rotation, translation[:, None]], dim=1)
     return torch.cat([top, eye[3:]], dim=0)
+
+
+def grid_around(relative: torch.Tensor, step_m: float) -> torch.Tensor:
+    """[9, 4, 4] float64 on `relative`'s device: the camera of `relative` [4, 4] (a camera in
+    another's frame) and that camera moved `step_m` metres sideways and along its axis around it
+    (a 3 x 3 grid in its own x and z, `relative` itself first): where an alignment may start
+    when the motion is too large for one basin."""
+    offsets = sorted(
+        ((x, z) for x in (-step_m, 0.0, step_m) for z in (-step_m, 0.0, step_m)), key=lambda o: o != (0, 0)
+    )
+    moves = torch.eye(4, dtype=torch.float64).repeat(len(offsets), 1, 1)
+    moves[:, 0, 3] = torch.tensor([x for x, _ in offsets], dtype=torch.float64)
+    moves[:, 2, 3] = torch.tensor([z for _, z in offsets], dtype=torch.float64)
+    return relative.double() @ moves.to(relative.device)

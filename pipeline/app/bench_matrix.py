@@ -38,7 +38,9 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-adjust-loops": ("slam.schedule=process", "mapping.adjust_window=5", "loops.enabled=true"),
     "process-odometry": ("slam.schedule=process", "tracking.odometry=features"),  # visual odometry's second guess
     "sequential-keyframe": ("slam.schedule=sequential", "mapping.rate=keyframe"),  # one thread, keyframes only mapped
+    "sequential-keyframe-no-compile": ("slam.schedule=sequential", "mapping.rate=keyframe", "run.compile=off"),
     "sequential-keyframe-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=1"),
+    "process-no-compile": ("slam.schedule=process", "run.compile=off"),  # graphs of eager kernels: no dynamo at start
     "process-eager-render": ("slam.schedule=process", "tracking.align_fixed_capacity=off"),  # gsplat's own tracking render
     "process-odometry-loops": ("slam.schedule=process", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),

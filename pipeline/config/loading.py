@@ -339,6 +339,7 @@ def validate(config: Config) -> None:
             "tracking.align_large_step_m and align_large_step_deg must be > 0",
         ),
         (config.tracking.align_max_renders >= 1, "tracking.align_max_renders must be >= 1"),
+        (0 <= config.tracking.align_grid_m < 1, "tracking.align_grid_m must be in [0, 1) metres"),
         (config.tracking.relocalise_candidates >= 0, "tracking.relocalise_candidates must be >= 0"),
         (config.mapping.iters >= 0, "mapping.iters must be >= 0"),
         (config.mapping.window >= 2, "mapping.window must be >= 2"),

@@ -108,6 +108,7 @@ class TrackingConfig:
     align_recovery_iters: int = 30  # align: coarsest-level iterations of the recovery attempt (wide schedule)
     align_wide_iters: tuple[int, ...] = (20, 10, 6, 4)  # align: a large step's solve per level (a level more)
     align_large_step_m: float = 0.03  # align: a solve moving the camera further renders again there, solves wide
+    align_grid_m: float = 0.15  # align: a frame expected far from its prediction is solved from it and from the camera moved this far sideways and along its axis (3 x 3); the start of least residual at the coarse levels goes on to the finest (0: the prediction alone)
     align_large_step_deg: float = 2.0  # align: likewise for its rotation, degrees
     align_max_renders: int = 3  # align: renders per frame at most (1: one render, no realignment)
     align_graph: Switch = "auto"  # align: replay each solve as a recorded CUDA graph (auto: on CUDA)

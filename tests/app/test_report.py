@@ -145,8 +145,9 @@ BARE_PATH = "/usr/bin:/bin"  # a shell's PATH without this Python's environment 
 
 
 def _program(line: str) -> str:
-    """The program a printed command runs (after an install step), as the shell finds it."""
-    command = line.split("   #")[0].split(" && ")[-1]
+    """The program a printed command runs (after an install step), as the shell finds it; a
+    command printed commented out (its extra is missing here) is read as it will run once installed."""
+    command = line.removeprefix("# ").split("   #")[0].split(" && ")[-1]
     return shlex.split(command)[0]
 
 

@@ -88,6 +88,7 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["tracking.align_color_sigma=0"], "tracking.align_depth_sigma_m and align_color_sigma must be > 0"),
         (["tracking.align_min_inliers=1.5"], "tracking.align_min_inliers must be in [0, 1]"),
         (["tracking.align_min_silhouette=1"], "tracking.align_min_silhouette must be in [0, 1)"),
+        (["tracking.align_grid_m=-0.1"], "tracking.align_grid_m must be in [0, 1) metres"),
         (["tracking.lr_translation=nan"], "bad value for 'tracking.lr_translation': 'nan' (expected a finite number)"),
         (["mapping.lr_colors=inf"], "bad value for 'mapping.lr_colors'"),
         (["mapping.lr_means=-0.1"], "mapping.lr_means must be >= 0"),

@@ -24,7 +24,7 @@ from enum import Enum
 import torch
 
 from pipeline.config import LoopConfig, TrackingConfig
-from pipeline.geometry import invert_pose, se3_exp
+from pipeline.geometry import grid_around, invert_pose
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.loops.candidates import LoopCandidate, loop_candidates
 from pipeline.slam.loops.pose_graph import Edge, GraphSolution, MotionSize, alignment_information, motion_size
@@ -286,16 +286,6 @@ def start_poses(candidate: LoopCandidate, old: Keyframe, current: Keyframe, conf
     if not candidate.by_appearance:
         return estimates[None]
     return grid_around(torch.eye(4, dtype=torch.float64), config.appearance_offset_m).to(estimates)
-
-
-def grid_around(relative: torch.Tensor, step_m: float) -> torch.Tensor:
-    """[9, 4, 4] float64: the camera of `relative` [4, 4] and that camera moved `step_m` sideways
-    and along its axis around it (a 3 x 3 grid, `relative` itself first)."""
-    offsets = sorted(
-        ((x, z) for x in (-step_m, 0.0, step_m) for z in (-step_m, 0.0, step_m)), key=lambda o: o != (0, 0)
-    )
-    twists = torch.tensor([[0.0, 0.0, 0.0, x, 0.0, z] for x, z in offsets], dtype=torch.float64)
-    return relative.double().cpu() @ torch.stack([se3_exp(twist) for twist in twists])
 
 
 def implied_pose(old: Keyframe, relative: torch.Tensor) -> torch.Tensor:

@@ -11,13 +11,13 @@ from collections import deque
 import torch
 
 from pipeline.config import LoopConfig, TrackingConfig
+from pipeline.geometry import grid_around
 from pipeline.slam.keyframes import Keyframe
 from pipeline.slam.loops.detection import (
     LoopDetection,
     Sighting,
     Verification,
     detect_loops,
-    grid_around,
     relative_pose,
     verify,
 )

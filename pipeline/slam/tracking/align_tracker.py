@@ -13,7 +13,7 @@ import torch
 
 from pipeline.config import TrackingConfig
 from pipeline.frame import DeviceFrame
-from pipeline.geometry import invert_pose, motion_extent, pose_matrix, rotmat_to_quat
+from pipeline.geometry import grid_around, invert_pose, motion_extent, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, CapacityRenderer, Gaussians, Renderer, RenderOutput, TileIntersections
 from pipeline.render.intersections import INTERSECTION_QUANTUM, grown_capacity
 from pipeline.slam.cuda_graphs import GraphCache
@@ -190,7 +190,9 @@ class AlignTracker:
     (`align_wide_iters`: one pyramid level more and more coarse iterations, a wider basin),
     at most `align_max_renders` renders in all. A frame whose last solve still moved that far
     has stopped short of the map's pose for it: it fails (the tracking verdict flags it lost).
-    A frame whose step the caller expects to be large (`wide`) is solved wide from the start."""
+    A frame whose step the caller expects to be large (`wide`) is solved wide from the start,
+    its coarse levels from a grid of starts around the prediction (`align_grid_m`,
+    `best_grid_start`)."""
 
     def __init__(
         self,
@@ -212,7 +214,7 @@ class AlignTracker:
         self.capture = capture
         self.capacity_renderer, self.capacity = capacity_renderer, capacity
         self.params = level_params(config, len(config.align_iters))
-        self._solvers: dict[tuple[int, ...], Callable[..., tuple[LmState, torch.Tensor]]] = {}
+        self._solvers: dict[tuple[tuple[int, ...], float], Callable[..., tuple[LmState, torch.Tensor]]] = {}
         self._warmed = not capture  # eager solves need no warm-up
 
     def __call__(
@@ -221,14 +223,15 @@ class AlignTracker:
         check_pyramid_fits(len(self.params), frame.height, frame.width)
         config = self.config
         wide_schedule = fitting_schedule(config.align_wide_iters, frame.height, frame.width)
-        attempt = self._pass(gaussians, frame, c2w_init, wide_schedule if wide else config.align_iters, wide_schedule)
+        first = (wide_schedule, config.align_grid_m) if wide else (config.align_iters, 0.0)
+        attempt = self._pass(gaussians, frame, c2w_init, *first, wide_schedule)
         renders = 1
         while not attempt.failure and attempt.report.large(config):
             if renders == config.align_max_renders:
                 if renders > 1:  # one render: as before this check, its solve is all there is
                     attempt = replace(attempt, failure=stopped_short(attempt.report, renders))
                 break
-            attempt = self._pass(gaussians, frame, self._c2w(attempt), wide_schedule, wide_schedule)
+            attempt = self._pass(gaussians, frame, self._c2w(attempt), wide_schedule, 0.0, wide_schedule)
             renders += 1
         return self._result(attempt)
 
@@ -238,22 +241,24 @@ class AlignTracker:
         frame: DeviceFrame,
         c2w_render: torch.Tensor,
         schedule: tuple[int, ...],
+        grid_m: float,
         wide_schedule: tuple[int, ...],
     ) -> Pass:
-        """Render at `c2w_render`, solve over `schedule`; a failed solve is tried once more over
-        `wide_schedule` with `align_recovery_iters` at its coarsest level (a wider basin)."""
+        """Render at `c2w_render`, solve over `schedule` (from a grid of starts `grid_m` apart
+        where that is not 0); a failed solve is tried once more over `wide_schedule` with
+        `align_recovery_iters` at its coarsest level (a wider basin)."""
         rendered, hits = self._render(gaussians, frame, c2w_render)
         images = (frame.color, frame.depth, frame.intrinsics, rendered.color, rendered.depth, rendered.silhouette)
         recovery = (self.config.align_recovery_iters, *wide_schedule[1:])
         if not self._warmed:
-            self._warm_up(images, (wide_schedule, recovery))
-        state, valid = self._solver(schedule)(*images)
+            self._warm_up(images, ((wide_schedule, 0.0), (wide_schedule, self.config.align_grid_m), (recovery, 0.0)))
+        state, valid = self._solver(schedule, grid_m)(*images)
         report = read_report(state, valid)
         if hits is not None and self._overflowed(hits):  # read after the report's: the GPU is done by then
-            return self._pass(gaussians, frame, c2w_render, schedule, wide_schedule)
+            return self._pass(gaussians, frame, c2w_render, schedule, grid_m, wide_schedule)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
-            retry, _ = self._solver(recovery)(*images)
+            retry, _ = self._solver(recovery, 0.0)(*images)
             retry_report = read_report(retry, valid)
             retry_failure = retry_report.failure(self.config)
             if retry_failure:
@@ -262,20 +267,23 @@ class AlignTracker:
                 state, report, failure = retry, retry_report, ""
         return Pass(state, report, valid, c2w_render, failure)
 
-    def _warm_up(self, images: tuple[torch.Tensor, ...], schedules: tuple[tuple[int, ...], ...]) -> None:
+    def _warm_up(self, images: tuple[torch.Tensor, ...], solves: tuple[tuple[tuple[int, ...], float], ...]) -> None:
         """On the first frame, compile and record the solves that later frames may need (the
-        wide and the recovery schedules: a pyramid level more), so that a frame mid-run never
-        waits seconds for a compile; their results are dropped."""
+        wide schedule, from one start and from the grid, and the recovery schedule: a pyramid
+        level more), so that a frame mid-run never waits seconds for a compile; their results
+        are dropped."""
         self._warmed = True
-        for schedule in schedules:
-            self._solver(schedule)(*images)
+        for schedule, grid_m in solves:
+            self._solver(schedule, grid_m)(*images)
 
-    def _solver(self, schedule: tuple[int, ...]) -> Callable[..., tuple[LmState, torch.Tensor]]:
-        """`solve_images` over `schedule`, made (and with `capture`, graph-recorded) once per schedule."""
-        if schedule not in self._solvers:
-            solve = partial(self.solve_images, schedule=schedule)
-            self._solvers[schedule] = GraphCache(solve) if self.capture else solve
-        return self._solvers[schedule]
+    def _solver(self, schedule: tuple[int, ...], grid_m: float) -> Callable[..., tuple[LmState, torch.Tensor]]:
+        """`solve_images` over `schedule` from a grid `grid_m` apart, made (and with `capture`,
+        graph-recorded) once per schedule and grid."""
+        key = (schedule, grid_m)
+        if key not in self._solvers:
+            solve = partial(self.solve_images, schedule=schedule, grid_m=grid_m)
+            self._solvers[key] = GraphCache(solve) if self.capture else solve
+        return self._solvers[key]
 
     def solve_images(
         self,
@@ -286,14 +294,22 @@ class AlignTracker:
         render_depth: torch.Tensor,
         silhouette: torch.Tensor,
         schedule: tuple[int, ...],
+        grid_m: float = 0.0,
     ) -> tuple[LmState, torch.Tensor]:
         """The frame (colour [H, W, 3], depth [H, W] metres, intrinsics [3, 3]) aligned to the
         render (colour, depth, silhouette at the frame's size) over `schedule` (one pyramid
-        level per entry) -> (the solve's last state, the frame's valid-depth mask [H x W] at
-        full size). Tensors in and out only, so that it can be recorded as a CUDA graph."""
+        level per entry), its coarse levels from a grid of starts `grid_m` apart where that is
+        not 0 (`best_grid_start`) -> (the solve's last state, the frame's valid-depth mask
+        [H x W] at full size). Tensors in and out only, so that it can be recorded as a CUDA graph."""
         images = (color, depth, intrinsics, render_color, render_depth, silhouette)
         sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
-        return self.solve(sources, targets, schedule), sources[0].valid
+        params = level_params(self.config, len(schedule))
+        if not grid_m or len(schedule) < 2:
+            return align(sources, targets, params, schedule, self.iteration), sources[0].valid
+        starts = grid_around(torch.eye(4, dtype=torch.float64, device=color.device), grid_m)
+        coarse = [align(sources[1:], targets[1:], params[1:], schedule[:-1], self.iteration, start) for start in starts]
+        start = best_grid_start(coarse, self.config.align_min_inliers)
+        return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.iteration, start), sources[0].valid
 
     def _render(
         self, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor
@@ -345,6 +361,24 @@ class AlignTracker:
         return AlignResult(
             self._c2w(attempt), fit.geometric_sq, coverage, attempt.failure, fit.hessian, attempt.state.pose
         )
+
+
+def best_grid_start(solves: list[LmState], min_inliers: float) -> torch.Tensor:
+    """[4, 4] float64: of the coarse solves from a grid of starts, the pose of the one of least
+    RMS point-to-plane residual among those whose inliers are at least `min_inliers` of the
+    pixels associated (the first where none is): on the device, nothing read back.
+
+    Why a grid: on real fast motion (a loop round a cabinet, 17 cm and 7 degrees a frame) a
+    solve from a prediction 5-13 cm and 4-15 degrees off turns the camera nearly right and
+    takes the rest of the error as a sideways step, a minimum 10-20 cm from the truth; the
+    least residual over starts 15 cm apart picks the right basin (bench/NOTES.md, Change 25)."""
+    fits = [solve.fit for solve in solves]
+    rms = torch.stack([(fit.geometric_sq.double() / fit.inliers.clamp(min=1)).sqrt() for fit in fits])
+    enough = torch.stack([fit.inliers >= min_inliers * fit.associated for fit in fits]) & torch.stack(
+        [fit.inliers > 0 for fit in fits]
+    )
+    ranked = torch.where(enough, rms, torch.full_like(rms, float("inf")))
+    return torch.stack([solve.pose for solve in solves])[ranked.argmin()]
 
 
 def fitting_schedule(schedule: tuple[int, ...], height: int, width: int) -> tuple[int, ...]:

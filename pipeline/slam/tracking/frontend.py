@@ -116,11 +116,14 @@ class TrackingFrontend:
         return self.trajectory.state(mark.poses_done, mark.prior, keyframes, history)
 
     def restore(self, saved: FrontendState) -> None:
-        """Continue after the frames of `saved` (`Trajectory.restored`)."""
+        """Continue after the frames of `saved` (`Trajectory.restored`), the next frame expected
+        far from its guess as it would have been without the stop (`_note_step` of the last step)."""
         self.trajectory = Trajectory.restored(saved, self.device)
         self.loss_history = list(saved.loss_history)
-        self._last_c2w, self._large_step = None, False  # the step into the first frame after it is unknown
-        self._last_index = None
+        self._last_c2w, self._large_step = None, False
+        for position in range(max(saved.frames_done - 2, 0), saved.frames_done):  # the last step, as tracked
+            self._note_step(self.trajectory.tracked[position].cpu(), self.trajectory.states[position])
+        self._last_index = None  # frame indices are not saved: odometry's first step after it is not used
 
     def track(
         self, frame: DeviceFrame, latest: MapVersion | None, anchor: KeyframePose | None = None
