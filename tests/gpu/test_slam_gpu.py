@@ -55,7 +55,8 @@ def _exact_renderer(gaussians: object, camera: Camera) -> RenderOutput:
     return RenderOutput(color_t, depth_t, (depth_t > 0).float(), none, none.bool())
 
 
-def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve() -> None:
+@pytest.mark.parametrize("wide", [False, True], ids=["one start", "grid of starts"])
+def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(wide: bool) -> None:
     config = with_dataset_defaults(load_config("tiny", overrides=["tracking.method=align"]), "replica")
     start = trajectory(SyntheticConfig(seed=0), 1)[0]
     truth = start @ se3_exp(torch.tensor([0.02, -0.01, 0.015, 0.03, 0.01, -0.02], dtype=torch.float64)).numpy()
@@ -70,7 +71,7 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve() -> No
         near, far = config.render.near, config.render.far
         tracker = AlignTracker(_exact_renderer, config.tracking, near, far, iteration, capture=capture)
         for _ in range(2):  # a graph is recorded on the first call and replayed on the second
-            results[name] = tracker(None, frame, init)  # type: ignore[arg-type]
+            results[name] = tracker(None, frame, init, wide=wide)  # type: ignore[arg-type]
     eager = results["eager"]
     assert eager.failure == ""
     assert float(torch.linalg.norm(eager.c2w[:3, 3].double().cpu() - torch.from_numpy(truth[:3, 3]))) < 0.005
