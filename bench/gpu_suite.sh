@@ -138,8 +138,8 @@ for part in "$@"; do
                 --set dataset.width=640 --set dataset.height=480 --stem odometry_tiny ;;
     warm-start)  # each cell a fresh process: repeat 0 on cold compile caches, repeat 1 on the warm machine a user's second run meets
               bench "$tum" --presets tiny --variants sequential-keyframe,process --repeats 2 --stem warm_start_tiny ;;
-    warm-start-compile)  # issue 34: what torch.compile costs at the start and buys once steady, under CUDA graphs
-              bench "$tum" --presets tiny --repeats 2 --stem warm_start_compile_tiny \
+    warm-start-compile)  # issue 34: what torch.compile costs at the start and buys once steady, under CUDA graphs (no dataset to carry)
+              bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_compile_tiny \
                 --variants sequential-keyframe,sequential-keyframe-no-compile,process,process-no-compile ;;
     odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
               bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \
