@@ -353,7 +353,8 @@ def test_a_large_real_step_is_solved_from_the_grid_start_of_least_residual(cabin
         truth = invert_pose(before.c2w_gt.double()) @ frame.c2w_gt.double()
         view = (before.color, before.depth, (before.depth > 0).float())
         for grid_m, found in errors.items():
-            state, _ = tracker.solve_images(frame.color, frame.depth, frame.intrinsics, *view, schedule, grid_m)
+            starts = grid_around(torch.eye(4, dtype=torch.float64), grid_m) if grid_m else None
+            state, _ = tracker.solve_images(frame.color, frame.depth, frame.intrinsics, *view, schedule, starts)
             found.append(100 * float(torch.linalg.norm((invert_pose(state.pose) @ truth)[:3, 3])))
     single, grid = (np.array(found) for found in errors.values())
     assert grid.mean() < 0.75 * single.mean() and (grid > 5).sum() < 0.6 * (single > 5).sum()

@@ -252,13 +252,13 @@ class AlignTracker:
         recovery = (self.config.align_recovery_iters, *wide_schedule[1:])
         if not self._warmed:
             self._warm_up(images, ((wide_schedule, 0.0), (wide_schedule, self.config.align_grid_m), (recovery, 0.0)))
-        state, valid = self._solver(schedule, grid_m)(*images)
+        state, valid = self._solver(schedule, grid_m, frame.color.device)(*images)
         report = read_report(state, valid)
         if hits is not None and self._overflowed(hits):  # read after the report's: the GPU is done by then
             return self._pass(gaussians, frame, c2w_render, schedule, grid_m, wide_schedule)
         failure = report.failure(self.config)
         if failure and report.valid >= MIN_PIXELS and self.config.align_recovery_iters > 0:
-            retry, _ = self._solver(recovery, 0.0)(*images)
+            retry, _ = self._solver(recovery, 0.0, frame.color.device)(*images)
             retry_report = read_report(retry, valid)
             retry_failure = retry_report.failure(self.config)
             if retry_failure:
@@ -274,14 +274,18 @@ class AlignTracker:
         are dropped."""
         self._warmed = True
         for schedule, grid_m in solves:
-            self._solver(schedule, grid_m)(*images)
+            self._solver(schedule, grid_m, images[0].device)(*images)
 
-    def _solver(self, schedule: tuple[int, ...], grid_m: float) -> Callable[..., tuple[LmState, torch.Tensor]]:
+    def _solver(
+        self, schedule: tuple[int, ...], grid_m: float, device: torch.device
+    ) -> Callable[..., tuple[LmState, torch.Tensor]]:
         """`solve_images` over `schedule` from a grid `grid_m` apart, made (and with `capture`,
-        graph-recorded) once per schedule and grid."""
+        graph-recorded) once per schedule and grid. The grid's poses are made here, outside any
+        recording: a copy from pageable host memory cannot be captured."""
         key = (schedule, grid_m)
         if key not in self._solvers:
-            solve = partial(self.solve_images, schedule=schedule, grid_m=grid_m)
+            starts = grid_around(torch.eye(4, dtype=torch.float64), grid_m).to(device) if grid_m else None
+            solve = partial(self.solve_images, schedule=schedule, starts=starts)
             self._solvers[key] = GraphCache(solve) if self.capture else solve
         return self._solvers[key]
 
@@ -294,19 +298,20 @@ class AlignTracker:
         render_depth: torch.Tensor,
         silhouette: torch.Tensor,
         schedule: tuple[int, ...],
-        grid_m: float = 0.0,
+        starts: torch.Tensor | None = None,
     ) -> tuple[LmState, torch.Tensor]:
         """The frame (colour [H, W, 3], depth [H, W] metres, intrinsics [3, 3]) aligned to the
         render (colour, depth, silhouette at the frame's size) over `schedule` (one pyramid
-        level per entry), its coarse levels from a grid of starts `grid_m` apart where that is
-        not 0 (`best_grid_start`) -> (the solve's last state, the frame's valid-depth mask
-        [H x W] at full size). Tensors in and out only, so that it can be recorded as a CUDA graph."""
+        level per entry), its coarse levels from each of `starts` where given ([S, 4, 4] float64
+        on the images' device: the frame's camera relative to the render's, `grid_around`) and
+        its finest from the best of them (`best_grid_start`) -> (the solve's last state, the
+        frame's valid-depth mask [H x W] at full size). Tensors in and out only, so that it can
+        be recorded as a CUDA graph."""
         images = (color, depth, intrinsics, render_color, render_depth, silhouette)
         sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
         params = level_params(self.config, len(schedule))
-        if not grid_m or len(schedule) < 2:
+        if starts is None or len(schedule) < 2:
             return align(sources, targets, params, schedule, self.iteration), sources[0].valid
-        starts = grid_around(torch.eye(4, dtype=torch.float64, device=color.device), grid_m)
         coarse = [align(sources[1:], targets[1:], params[1:], schedule[:-1], self.iteration, start) for start in starts]
         start = best_grid_start(coarse, self.config.align_min_inliers)
         return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.iteration, start), sources[0].valid
