@@ -37,8 +37,7 @@ bench() { python3 -m pipeline bench --quiet --out "$out" --runs "$runs" "$@" "${
     mkdir -p "$out/runs/$(basename "$run")" && cp "$run"trajectory.txt "$run"frames.csv "$run"metrics.json "$out/runs/$(basename "$run")/" 2>/dev/null
   done; }
 drift_variants=process-one-render,process,process-loops,process-adjust,process-adjust-loops
-for part in "$@"; do
-  echo "== $part (suite at ${SECONDS}s)"
+run_part() {
   case $part in
     parity) python3 bench/parity.py --out "$out" 2>&1 | grep -v Warning | tail -n 20 ;;
     extension) python3 -c "import torch; from pipeline.render.intersect_kernel import intersect_kernel; print('built:', intersect_kernel(torch.device('cuda')) is not None)"
@@ -185,6 +184,12 @@ for part in "$@"; do
     ray-matrix) python3 bench/ray_scale.py --out "$out" --stem ray_matrix --parts matrix 2>&1 | grep -v "WARNING\|INFO" | tail -n 20 ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
+}
+for part in "$@"; do
+  echo "== $part (suite at ${SECONDS}s)"
+  run_part &  # waited for, not in the foreground: a TERM (an outer timeout) packs what is done at once, not after the part
+  wait $!
+  [ $? -eq 2 ] && exit 2
   tar -czf "$dest/results.tar.gz" -C "$out" .  # after every part: a call killed at its time limit keeps what was done
 done
 echo "== done (suite at ${SECONDS}s)"

@@ -383,7 +383,8 @@ def best_grid_start(solves: list[LmState], min_inliers: float) -> torch.Tensor:
         [fit.inliers > 0 for fit in fits]
     )
     ranked = torch.where(enough, rms, torch.full_like(rms, float("inf")))
-    return torch.stack([solve.pose for solve in solves])[ranked.argmin()]
+    poses = torch.stack([solve.pose for solve in solves])
+    return poses.index_select(0, ranked.argmin().reshape(1))[0]  # not poses[argmin]: a 0-d index is read to the host
 
 
 def fitting_schedule(schedule: tuple[int, ...], height: int, width: int) -> tuple[int, ...]:
