@@ -39,10 +39,10 @@ def test_next_lines_are_one_command_each_that_a_shell_parses(run_dir: Path) -> N
     lines = _next(run_dir)
     assert len(lines) == 2 + len(EXPORTERS)  # view, evo, one export per format
     for line in lines:
-        command = line.split("   #")[0]
+        command = _command(line)
         assert "|" not in command, line
         assert subprocess.run(["bash", "-n", "-c", command]).returncode == 0, line
-    assert [shlex.split(line)[-1] for line in lines if " export " in line] == list(EXPORTERS)
+    assert [shlex.split(_command(line))[-1] for line in lines if " export " in line] == list(EXPORTERS)
 
 
 def test_an_extra_installed_but_unable_to_load_is_named_not_offered(
@@ -144,11 +144,15 @@ def test_compile_seconds_count_a_compile_in_this_process() -> None:
 BARE_PATH = "/usr/bin:/bin"  # a shell's PATH without this Python's environment (no activated venv)
 
 
+def _command(line: str) -> str:
+    """A printed line's command without its comment; a command printed commented out (its extra
+    cannot load here) as it will run once installed."""
+    return line.removeprefix("# ").split("   #")[0]
+
+
 def _program(line: str) -> str:
-    """The program a printed command runs (after an install step), as the shell finds it; a
-    command printed commented out (its extra is missing here) is read as it will run once installed."""
-    command = line.removeprefix("# ").split("   #")[0].split(" && ")[-1]
-    return shlex.split(command)[0]
+    """The program a printed command runs (after an install step), as the shell finds it."""
+    return shlex.split(_command(line).split(" && ")[-1])[0]
 
 
 @pytest.mark.slow
