@@ -65,13 +65,20 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(
     upload = host_frame_tensors(_frame(1, truth))
     frame = type(upload)(**{k: (v.to(CUDA) if isinstance(v, torch.Tensor) else v) for k, v in vars(upload).items()})
     init = torch.from_numpy(start).float().to(CUDA)
-    compiled = make_kernels(compiled=True).align_iteration
-    variants = {"eager": (EAGER.align_iteration, False), "graphed": (EAGER.align_iteration, True)}
-    variants["compiled and graphed"] = (compiled, True)  # as the presets run on CUDA
+    variants = {"eager": (EAGER, False), "graphed": (EAGER, True)}
+    variants["compiled and graphed"] = (make_kernels(compiled=True), True)  # as the presets run on CUDA
     results = {}
-    for name, (iteration, capture) in variants.items():
+    for name, (kernels, capture) in variants.items():
         near, far = config.render.near, config.render.far
-        tracker = AlignTracker(_exact_renderer, config.tracking, near, far, iteration, capture=capture)
+        tracker = AlignTracker(
+            _exact_renderer,
+            config.tracking,
+            near,
+            far,
+            kernels.align_iteration,
+            capture=capture,
+            grid_iteration=kernels.align_grid_iteration,
+        )
         for _ in range(2):  # a graph is recorded on the first call and replayed on the second
             results[name] = tracker(None, frame, init, wide=wide)  # type: ignore[arg-type]
     assert "could not be recorded" not in caplog.text  # replayed, not run uncaptured after a failed recording

@@ -19,8 +19,14 @@ from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import Camera, Gaussians, RenderOutput, make_capacity_renderer, make_renderer
 from pipeline.slam.gaussian_map import seed_gaussians
 from pipeline.slam.splatam import SplaTAM
-from pipeline.slam.tracking.align_tracker import AlignTracker, best_grid_start, fitting_schedule
-from pipeline.slam.tracking.rgbd_alignment import lm_iteration, lm_start
+from pipeline.slam.tracking.align_tracker import (
+    AlignTracker,
+    best_grid_start,
+    fitting_schedule,
+    level_params,
+    prepare_rgbd,
+)
+from pipeline.slam.tracking.rgbd_alignment import LmState, align, batched, lm_iteration, lm_start
 from pipeline.slam.tracking.trackers import TrackSettings, make_tracker
 from pipeline.stages.upload import host_frame_tensors
 
@@ -361,23 +367,42 @@ def test_a_large_real_step_is_solved_from_the_grid_start_of_least_residual(cabin
 
 
 def test_the_grid_start_is_the_least_residual_of_those_that_fit_enough() -> None:
-    def solve(rms_m: float, inliers: int, associated: int, x: float) -> object:
-        state = lm_start(torch.eye(4, dtype=torch.float64))
-        fit = state.fit._replace(
-            geometric_sq=torch.tensor(rms_m**2 * inliers),
-            inliers=torch.tensor(inliers),
-            associated=torch.tensor(associated),
-        )
-        pose = torch.eye(4, dtype=torch.float64)
-        pose[0, 3] = x
-        return state._replace(fit=fit, pose=pose)
+    def solves(*fits: tuple[float, int, int, float]) -> LmState:
+        """A batch of solves, each (RMS residual metres, inliers, associated, pose's x)."""
+        rms_m, inliers, associated, x = zip(*fits)
+        rms_m, x = torch.tensor(rms_m, dtype=torch.float64), torch.tensor(x, dtype=torch.float64)
+        inliers, associated = torch.tensor(inliers), torch.tensor(associated)
+        pose = torch.eye(4, dtype=torch.float64).repeat(len(fits), 1, 1)
+        pose[:, 0, 3] = x
+        state = lm_start(pose)
+        fit = state.fit._replace(geometric_sq=rms_m**2 * inliers, inliers=inliers, associated=associated)
+        return state._replace(fit=fit)
 
     # the least residual fits only 30% of what it sees: the next least is taken
-    solves = [solve(0.010, 900, 1000, 0.0), solve(0.002, 300, 1000, 0.15), solve(0.005, 800, 1000, -0.15)]
-    assert float(best_grid_start(solves, 0.5)[0, 3]) == -0.15  # type: ignore[arg-type]
-    assert float(best_grid_start(solves, 0.2)[0, 3]) == 0.15  # type: ignore[arg-type]
-    nothing = [solve(0.01, 0, 1000, 0.1), solve(0.01, 10, 1000, 0.2)]
-    assert float(best_grid_start(nothing, 0.5)[0, 3]) == 0.1  # type: ignore[arg-type]  # none fits: the first
+    grid = solves((0.010, 900, 1000, 0.0), (0.002, 300, 1000, 0.15), (0.005, 800, 1000, -0.15))
+    assert float(best_grid_start(grid, 0.5)[0, 3]) == -0.15
+    assert float(best_grid_start(grid, 0.2)[0, 3]) == 0.15
+    nothing = solves((0.01, 0, 1000, 0.1), (0.01, 10, 1000, 0.2))
+    assert float(best_grid_start(nothing, 0.5)[0, 3]) == 0.1  # none fits: the first
+
+
+def test_solves_from_a_batch_of_starts_equal_those_from_each_start() -> None:
+    """The grid's coarse solves run batched (one kernel per operation for all starts, `batched`):
+    the same poses and fits as one solve per start."""
+    color, depth = ray_cast(START)
+    moved_color, moved_depth = ray_cast(START @ motion(0.08, 6.0, 1))
+    k = torch.from_numpy(default_intrinsics(WIDTH, HEIGHT)).float()
+    sources, targets = prepare_rgbd(moved_color, moved_depth, k, color, depth, (depth > 0).float(), 3, 0.5)
+    config = tiny_settings(None, "align").config
+    params, schedule = level_params(config, 3), (3, 2, 1)  # short: the starts end apart
+    starts = grid_around(torch.eye(4, dtype=torch.float64), 0.05)
+    together = align(sources, targets, params, schedule, batched(lm_iteration), starts)
+    for index, start in enumerate(starts):
+        alone = align(sources, targets, params, schedule, lm_iteration, start)
+        assert torch.allclose(together.pose[index], alone.pose, atol=1e-9)
+        assert torch.allclose(together.fit.cost[index], alone.fit.cost, rtol=1e-9)
+        assert int(together.fit.inliers[index]) == int(alone.fit.inliers)
+    assert len({round(float(cost), 3) for cost in together.fit.cost}) > 1  # the starts did differ
 
 
 def test_a_grid_of_starts_holds_the_prediction_first_and_moves_the_camera_in_its_own_axes() -> None:

@@ -26,6 +26,7 @@ from pipeline.slam.tracking.rgbd_alignment import (
     TargetMaps,
     align,
     lm_iteration,
+    lm_iteration_batched,
     source_points,
     target_maps,
 )
@@ -204,13 +205,17 @@ class AlignTracker:
         capture: bool = False,
         capacity_renderer: CapacityRenderer | None = None,
         capacity: int = INTERSECTION_QUANTUM,
+        grid_iteration: AlignIteration = lm_iteration_batched,
     ) -> None:
-        """`capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py).
+        """`iteration`: one Levenberg-Marquardt iteration; `grid_iteration`: the same over the
+        grid's starts at once (`batched`, compiled apart: see `make_kernels`).
+        `capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py).
         `capacity_renderer`: render at a fixed intersection capacity (starting at `capacity`),
         so that the render never waits for the host to read the intersection count back (as
         gsplat's own does); the count is read after the solve's statistics, and a pass whose
         intersections overflowed runs again with the capacity grown."""
         self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
+        self.grid_iteration = grid_iteration
         self.capture = capture
         self.capacity_renderer, self.capacity = capacity_renderer, capacity
         self.params = level_params(config, len(config.align_iters))
@@ -312,7 +317,7 @@ class AlignTracker:
         params = level_params(self.config, len(schedule))
         if starts is None or len(schedule) < 2:
             return align(sources, targets, params, schedule, self.iteration), sources[0].valid
-        coarse = [align(sources[1:], targets[1:], params[1:], schedule[:-1], self.iteration, start) for start in starts]
+        coarse = align(sources[1:], targets[1:], params[1:], schedule[:-1], self.grid_iteration, starts)
         start = best_grid_start(coarse, self.config.align_min_inliers)
         return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.iteration, start), sources[0].valid
 
@@ -368,23 +373,23 @@ class AlignTracker:
         )
 
 
-def best_grid_start(solves: list[LmState], min_inliers: float) -> torch.Tensor:
-    """[4, 4] float64: of the coarse solves from a grid of starts, the pose of the one of least
-    RMS point-to-plane residual among those whose inliers are at least `min_inliers` of the
-    pixels associated (the first where none is): on the device, nothing read back.
+def best_grid_start(solves: LmState, min_inliers: float) -> torch.Tensor:
+    """[4, 4] float64: of the coarse solves from a grid of starts (a batch: each field with a
+    leading dimension), the pose of the one of least RMS point-to-plane residual among those
+    whose inliers are at least `min_inliers` of the pixels associated (the first where none is):
+    on the device, nothing read back.
 
     Why a grid: on real fast motion (a loop round a cabinet, 17 cm and 7 degrees a frame) a
     solve from a prediction 5-13 cm and 4-15 degrees off turns the camera nearly right and
     takes the rest of the error as a sideways step, a minimum 10-20 cm from the truth; the
     least residual over starts 15 cm apart picks the right basin (bench/NOTES.md, Change 25)."""
-    fits = [solve.fit for solve in solves]
-    rms = torch.stack([(fit.geometric_sq.double() / fit.inliers.clamp(min=1)).sqrt() for fit in fits])
-    enough = torch.stack([fit.inliers >= min_inliers * fit.associated for fit in fits]) & torch.stack(
-        [fit.inliers > 0 for fit in fits]
-    )
+    fit = solves.fit
+    rms = (fit.geometric_sq.double() / fit.inliers.clamp(min=1)).sqrt()
+    enough = (fit.inliers >= min_inliers * fit.associated) & (fit.inliers > 0)
     ranked = torch.where(enough, rms, torch.full_like(rms, float("inf")))
-    poses = torch.stack([solve.pose for solve in solves])
-    return poses.index_select(0, ranked.argmin().reshape(1))[0]  # not poses[argmin]: a 0-d index is read to the host
+    return solves.pose.index_select(0, ranked.argmin().reshape(1))[
+        0
+    ]  # not pose[argmin]: a 0-d index is read to the host
 
 
 def fitting_schedule(schedule: tuple[int, ...], height: int, width: int) -> tuple[int, ...]:

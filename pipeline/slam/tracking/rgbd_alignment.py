@@ -277,13 +277,15 @@ def damped_step(hessian: torch.Tensor, gradient: torch.Tensor, damping: torch.Te
 
 
 def lm_start(pose: torch.Tensor) -> LmState:
-    """A level's first state: evaluate `pose` [4, 4] float64 first (any cost beats infinity)."""
-    zero = torch.zeros((), dtype=torch.float64, device=pose.device)
-    count = torch.zeros((), dtype=torch.long, device=pose.device)
+    """A level's first state: evaluate `pose` [..., 4, 4] float64 first (any cost beats
+    infinity); leading dimensions make a batch of independent solves (`batched`)."""
+    batch, device = pose.shape[:-2], pose.device
+    zero = torch.zeros(batch, dtype=torch.float64, device=device)
+    count = torch.zeros(batch, dtype=torch.long, device=device)
     fit = Linearisation(
-        torch.zeros(6, 6, dtype=torch.float64, device=pose.device),
-        torch.zeros(6, dtype=torch.float64, device=pose.device),
-        torch.full((), float("inf"), dtype=torch.float64, device=pose.device),
+        torch.zeros(*batch, 6, 6, dtype=torch.float64, device=device),
+        torch.zeros(*batch, 6, dtype=torch.float64, device=device),
+        torch.full(batch, float("inf"), dtype=torch.float64, device=device),
         count,
         count.clone(),
         zero.float(),
@@ -309,6 +311,17 @@ def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, param
 AlignIteration = Callable[[LmState, SourcePoints, TargetMaps, AlignParams], LmState]
 
 
+def batched(iteration: AlignIteration) -> AlignIteration:
+    """`iteration` over a batch of states (each field with a leading dimension: solves from
+    several starts, `lm_start` of [S, 4, 4]) against one source and target: one kernel per
+    operation for all of them. Compile the result, not `iteration`: a compiled function
+    under vmap runs eager."""
+    return torch.vmap(iteration, in_dims=(0, None, None, None))
+
+
+lm_iteration_batched = batched(lm_iteration)
+
+
 def align(
     sources: Sequence[SourcePoints],
     targets: Sequence[TargetMaps],
@@ -317,10 +330,10 @@ def align(
     iteration: AlignIteration = lm_iteration,
     start: torch.Tensor | None = None,
 ) -> LmState:
-    """Coarse to fine from the motion `start` [4, 4] float64 (default: the identity). `sources`,
-    `targets` and `params` hold one entry per pyramid level, finest first; `schedule` the
-    iterations per level, coarsest first. Each level starts from the best pose of the one before
-    -> the finest level's last state."""
+    """Coarse to fine from the motion `start` [4, 4] float64 (default: the identity; [S, 4, 4]
+    with a `batched` iteration: S solves at once). `sources`, `targets` and `params` hold one
+    entry per pyramid level, finest first; `schedule` the iterations per level, coarsest first.
+    Each level starts from the best pose of the one before -> the finest level's last state."""
     pose = torch.eye(4, dtype=torch.float64, device=sources[0].points.device) if start is None else start
     state = lm_start(pose)
     for level, iterations in zip(reversed(range(len(sources))), schedule):
