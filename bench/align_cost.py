@@ -127,8 +127,8 @@ def measure(width: int, height: int, repeats: int, device: torch.device) -> dict
         return rendered  # never called: prepare() takes the render itself
 
     eager = solver(AlignTracker(shows_the_view, config, 0.01, 100.0), frame, rendered)
-    compiled_iteration = make_kernels(compiled=True).align_iteration
-    compiled = solver(AlignTracker(shows_the_view, config, 0.01, 100.0, compiled_iteration), frame, rendered)
+    compiled_kernels = make_kernels(compiled=True).align
+    compiled = solver(AlignTracker(shows_the_view, config, 0.01, 100.0, compiled_kernels), frame, rendered)
     variants = {"eager": eager, "compiled": compiled}
     if cuda:
         variants.update({"graph": eager, "compiled+graph": compiled})

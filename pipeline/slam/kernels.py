@@ -16,7 +16,7 @@ import torch
 
 from pipeline.compile_cache import persist_compile_cache
 from pipeline.slam.losses import ssim
-from pipeline.slam.tracking.rgbd_alignment import AlignIteration, lm_iteration, lm_iteration_batched
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, batched, lm_iteration
 
 
 def tracking_loss(
@@ -58,8 +58,7 @@ def mapping_loss(
 class SlamKernels:
     tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     mapping_loss: Callable[..., torch.Tensor]
-    align_iteration: AlignIteration  # one Levenberg-Marquardt iteration of the align tracker (per level)
-    align_grid_iteration: AlignIteration  # the same over a batch of starts (`batched`: the grid's)
+    align: AlignKernels  # the align tracker's Levenberg-Marquardt iteration (per level), one start and a batch
 
 
 def make_kernels(compiled: bool) -> SlamKernels:
@@ -68,14 +67,13 @@ def make_kernels(compiled: bool) -> SlamKernels:
     align iteration compiles once per pyramid level's size: compiled for any size (one graph) it
     ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome)."""
     if not compiled:
-        return SlamKernels(tracking_loss, mapping_loss, lm_iteration, lm_iteration_batched)
+        return SlamKernels(tracking_loss, mapping_loss, EAGER_ALIGN)
     cuda = torch.cuda.is_available()
     persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
     return SlamKernels(
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),
-        torch.compile(lm_iteration, dynamic=False),
-        torch.compile(lm_iteration_batched, dynamic=False),
+        AlignKernels(torch.compile(lm_iteration, dynamic=False), torch.compile(batched(lm_iteration), dynamic=False)),
     )
 
 

@@ -47,5 +47,5 @@ def loop_closer_for(config: Config, settings: BackendSettings) -> LoopCloser | N
     kernels: `settings`), else one that does nothing."""
     if not config.loops.enabled:
         return NoLoopCloser()
-    iteration = settings.window.kernels.align_iteration
-    return LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed, iteration)
+    kernels = settings.window.kernels.align
+    return LoopCloser(config.loops, config.tracking, config.keyframes.overlap_samples, config.run.seed, kernels)

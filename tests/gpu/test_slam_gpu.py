@@ -70,15 +70,7 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(
     results = {}
     for name, (kernels, capture) in variants.items():
         near, far = config.render.near, config.render.far
-        tracker = AlignTracker(
-            _exact_renderer,
-            config.tracking,
-            near,
-            far,
-            kernels.align_iteration,
-            capture=capture,
-            grid_iteration=kernels.align_grid_iteration,
-        )
+        tracker = AlignTracker(_exact_renderer, config.tracking, near, far, kernels.align, capture=capture)
         for _ in range(2):  # a graph is recorded on the first call and replayed on the second
             results[name] = tracker(None, frame, init, wide=wide)  # type: ignore[arg-type]
     assert "could not be recorded" not in caplog.text  # replayed, not run uncaptured after a failed recording

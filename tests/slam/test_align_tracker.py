@@ -26,7 +26,7 @@ from pipeline.slam.tracking.align_tracker import (
     level_params,
     prepare_rgbd,
 )
-from pipeline.slam.tracking.rgbd_alignment import LmState, align, batched, lm_iteration, lm_start
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, LmState, align, lm_iteration, lm_start, solve_of
 from pipeline.slam.tracking.trackers import TrackSettings, make_tracker
 from pipeline.stages.upload import host_frame_tensors
 
@@ -396,12 +396,12 @@ def test_solves_from_a_batch_of_starts_equal_those_from_each_start() -> None:
     config = tiny_settings(None, "align").config
     params, schedule = level_params(config, 3), (3, 2, 1)  # short: the starts end apart
     starts = grid_around(torch.eye(4, dtype=torch.float64), 0.05)
-    together = align(sources, targets, params, schedule, batched(lm_iteration), starts)
+    together = align(sources, targets, params, schedule, EAGER_ALIGN.batch, starts)
     for index, start in enumerate(starts):
-        alone = align(sources, targets, params, schedule, lm_iteration, start)
-        assert torch.allclose(together.pose[index], alone.pose, atol=1e-9)
-        assert torch.allclose(together.fit.cost[index], alone.fit.cost, rtol=1e-9)
-        assert int(together.fit.inliers[index]) == int(alone.fit.inliers)
+        alone, one_of = align(sources, targets, params, schedule, lm_iteration, start), solve_of(together, index)
+        assert torch.allclose(one_of.pose, alone.pose, atol=1e-9)
+        assert torch.allclose(one_of.fit.cost, alone.fit.cost, rtol=1e-9)
+        assert int(one_of.fit.inliers) == int(alone.fit.inliers)
     assert len({round(float(cost), 3) for cost in together.fit.cost}) > 1  # the starts did differ
 
 

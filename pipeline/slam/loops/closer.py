@@ -35,7 +35,7 @@ from pipeline.slam.loops.map_correction import corrections, move_map
 from pipeline.slam.loops.pose_graph import Edge, PoseGraph, chained, fixed_information, motion_size, optimise
 from pipeline.slam.loops.search import LoopSearch
 from pipeline.slam.state import LoopState
-from pipeline.slam.tracking.rgbd_alignment import AlignIteration, SourcePoints, lm_iteration
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, SourcePoints
 
 log = logging.getLogger("gsplatam")
 F64 = torch.float64
@@ -60,17 +60,17 @@ class LoopCloser:
         tracking: TrackingConfig,
         samples: int,
         seed: int,
-        iteration: AlignIteration = lm_iteration,
+        kernels: AlignKernels = EAGER_ALIGN,
     ) -> None:
-        """`iteration`: the alignment's Levenberg-Marquardt iteration (the compiled one where
-        `run.compile` says so, as the tracker's)."""
+        """`kernels`: the alignment's Levenberg-Marquardt iteration, from one start and from a
+        batch (the compiled ones where `run.compile` says so, as the tracker's)."""
         self.config = config
         self.tracking = tracking
         self.samples = samples  # pixels sampled for the candidates' overlap (keyframes.overlap_samples)
         self.seed = seed
-        self.iteration = iteration
+        self.kernels = kernels
         self.state = LoopState.empty()
-        self.search = LoopSearch(config, tracking, iteration)
+        self.search = LoopSearch(config, tracking, kernels)
         self._unpublished: Correction | None = None  # a loop closed whose corrected map is not yet published
 
     def restore(self, saved: LoopState | None, gaussians: int, device: torch.device) -> None:
@@ -79,7 +79,7 @@ class LoopCloser:
         if saved is None:
             saved = replace(LoopState.empty(), creator=torch.full((gaussians,), -1, dtype=torch.int64))
         self.state = replace(saved, creator=saved.creator.to(device), node_positions=list(saved.node_positions))
-        self.search = LoopSearch(self.config, self.tracking, self.iteration)  # its sightings are not saved
+        self.search = LoopSearch(self.config, self.tracking, self.kernels)  # its sightings are not saved
 
     def saved(self, keyframes: list[Keyframe]) -> LoopState:
         """A host copy of the state, its nodes at the stored `keyframes`' current poses."""

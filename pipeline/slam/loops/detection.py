@@ -31,12 +31,14 @@ from pipeline.slam.loops.pose_graph import Edge, GraphSolution, MotionSize, alig
 from pipeline.slam.loops.views import KeyframeViews
 from pipeline.slam.tracking.align_tracker import SolveReport, level_params, read_report
 from pipeline.slam.tracking.rgbd_alignment import (
+    EAGER_ALIGN,
     AlignIteration,
+    AlignKernels,
     AlignParams,
     SourcePoints,
     TargetMaps,
     align,
-    lm_iteration,
+    solve_of,
 )
 
 NO_INFORMATION = torch.zeros(6, 6, dtype=torch.float64)  # of a verification that failed at its coarse levels
@@ -222,13 +224,13 @@ def verify(
     config: LoopConfig,
     tracking: TrackingConfig,
     schedule: tuple[int, ...] | None = None,
-    iteration: AlignIteration = lm_iteration,
+    kernels: AlignKernels = EAGER_ALIGN,
 ) -> Verification:
     """Align the current keyframe (`sources`, its pyramid as points, finest first) to `old` (its
     stored colour and depth as the target, `views`) from the relative pose(s) `starts` [4, 4] or
     [S, 4, 4] float64 (the current camera in the old one's: the estimates', or `start_poses`),
-    over `schedule` (default `verify_iters`): the coarse levels first from every start, judged
-    (`judged` at level 1); of the starts that pass them, only the one of least RMS residual goes
+    over `schedule` (default `verify_iters`): the coarse levels first from every start (one
+    batched solve, `kernels.batch`), judged (`judged` at level 1); of the starts that pass them, only the one of least RMS residual goes
     on to the finest level, judged in full (the finest level and its target, made again for an
     old keyframe, are most of a verification's cost: once per candidate, not once per start).
     None passing: the first start's failure."""
@@ -236,37 +238,42 @@ def verify(
     params = level_params(tracking, len(schedule))
     start = starts.reshape(-1, 4, 4)
     if len(schedule) > 1:
-        fits = [
-            _coarse_fit(sources, views.coarse(old), params, schedule, s, config, tracking, iteration) for s in start
-        ]
+        fits = _coarse_fits(sources, views.coarse(old), params, schedule, start, config, tracking, kernels.batch)
         passing = [fit for fit in fits if not fit.failure]
         if not passing:
             return fits[0]
         start = min(passing, key=lambda fit: fit.report.rms_m).relative[None].to(start)
     finest = views.finest(old, intrinsics)
-    state = align(sources[:1], [finest], params[:1], schedule[-1:], iteration, start=start[0])
+    state = align(sources[:1], [finest], params[:1], schedule[-1:], kernels.one, start=start[0])
     report = read_report(state, sources[0].valid)
     information = alignment_information(state.fit.hessian, state.pose, config.information_scale)
     coverage = report.inliers / max(report.valid, 1)
     return Verification(report, coverage, state.pose.cpu(), information, judged(report, config, tracking))
 
 
-def _coarse_fit(
+def _coarse_fits(
     sources: Sequence[SourcePoints],
     coarse: Sequence[TargetMaps],
     params: Sequence[AlignParams],
     schedule: tuple[int, ...],
-    start: torch.Tensor,
+    starts: torch.Tensor,
     config: LoopConfig,
     tracking: TrackingConfig,
-    iteration: AlignIteration,
-) -> Verification:
-    """The coarse levels (1 and up) of a verification from `start` [4, 4] float64, judged at
-    level 1 (no information: an edge is made at the finest level only)."""
-    state = align(sources[1:], coarse, params[1:], schedule[:-1], iteration, start=start)
-    report = read_report(state, sources[1].valid)
-    failure = judged(report, config, tracking, level=1)
-    return Verification(report, report.inliers / max(report.valid, 1), state.pose.cpu(), NO_INFORMATION, failure)
+    batch_iteration: AlignIteration,
+) -> list[Verification]:
+    """The coarse levels (1 and up) of a verification from each of `starts` [S, 4, 4] float64
+    (one solve for all, `batch_iteration`), each judged at level 1 (no information: an edge is
+    made at the finest level only)."""
+    solves = align(sources[1:], coarse, params[1:], schedule[:-1], batch_iteration, start=starts)
+    fits = []
+    for index in range(len(starts)):
+        state = solve_of(solves, index)
+        report = read_report(state, sources[1].valid)
+        failure = judged(report, config, tracking, level=1)
+        fits.append(
+            Verification(report, report.inliers / max(report.valid, 1), state.pose.cpu(), NO_INFORMATION, failure)
+        )
+    return fits
 
 
 def relative_pose(old: Keyframe, current: Keyframe) -> torch.Tensor:
@@ -334,7 +341,7 @@ def detect_loops(
     config: LoopConfig,
     tracking: TrackingConfig,
     sightings: Sequence[Sighting] = (),
-    iteration: AlignIteration = lm_iteration,
+    kernels: AlignKernels = EAGER_ALIGN,
     lost: bool = False,
 ) -> LoopDetection:
     """The loop search for the newest of `keyframes` (its pyramid as points: `sources`; the
@@ -354,7 +361,7 @@ def detect_loops(
             intrinsics,
             config,
             tracking,
-            iteration=iteration,
+            kernels=kernels,
         )
         for c in candidates
     ]

@@ -24,16 +24,16 @@ from pipeline.slam.loops.detection import (
 from pipeline.slam.loops.views import KeyframeViews
 from pipeline.slam.tracking.align_tracker import source_pyramid
 from pipeline.slam.tracking.pyramid import check_pyramid_fits
-from pipeline.slam.tracking.rgbd_alignment import AlignIteration, SourcePoints, lm_iteration
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, SourcePoints
 
 ODOMETRY_SCHEDULE = (1,)  # the odometry edge: one linearisation at the finest level, at the estimates' relative pose
 
 
 class LoopSearch:
-    def __init__(self, config: LoopConfig, tracking: TrackingConfig, iteration: AlignIteration = lm_iteration) -> None:
-        """`iteration`: the alignment's Levenberg-Marquardt iteration (the compiled one where
-        `run.compile` says so, as the tracker's)."""
-        self.config, self.tracking, self.iteration = config, tracking, iteration
+    def __init__(self, config: LoopConfig, tracking: TrackingConfig, kernels: AlignKernels = EAGER_ALIGN) -> None:
+        """`kernels`: the alignment's Levenberg-Marquardt iteration, from one start and from a
+        batch (the compiled ones where `run.compile` says so, as the tracker's)."""
+        self.config, self.tracking, self.kernels = config, tracking, kernels
         self.views = KeyframeViews(len(config.verify_iters), tracking.align_min_silhouette)
         self._recent: deque[list[Sighting]] = deque(maxlen=config.confirm_keyframes)  # per search, oldest first
 
@@ -84,7 +84,7 @@ class LoopSearch:
         estimates = relative_pose(previous, current)
         starts = (grid_around(estimates, grid_m) if grid_m else estimates).to(sources[0].points.device)
         config, tracking = self.config, self.tracking
-        return verify(sources, self.views, previous, starts, intrinsics, config, tracking, schedule, self.iteration)
+        return verify(sources, self.views, previous, starts, intrinsics, config, tracking, schedule, self.kernels)
 
     def detect(
         self,
@@ -107,7 +107,7 @@ class LoopSearch:
             self.config,
             self.tracking,
             self.sightings,
-            self.iteration,
+            self.kernels,
             lost,
         )
         self._recent.append(detection.sightings(keyframes))

@@ -19,14 +19,13 @@ from pipeline.render.intersections import INTERSECTION_QUANTUM, grown_capacity
 from pipeline.slam.cuda_graphs import GraphCache
 from pipeline.slam.tracking.pyramid import check_pyramid_fits, intensity, rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
-    AlignIteration,
+    EAGER_ALIGN,
+    AlignKernels,
     AlignParams,
     LmState,
     SourcePoints,
     TargetMaps,
     align,
-    lm_iteration,
-    lm_iteration_batched,
     source_points,
     target_maps,
 )
@@ -201,21 +200,18 @@ class AlignTracker:
         config: TrackingConfig,
         near: float,
         far: float,
-        iteration: AlignIteration = lm_iteration,
+        kernels: AlignKernels = EAGER_ALIGN,
         capture: bool = False,
         capacity_renderer: CapacityRenderer | None = None,
         capacity: int = INTERSECTION_QUANTUM,
-        grid_iteration: AlignIteration = lm_iteration_batched,
     ) -> None:
-        """`iteration`: one Levenberg-Marquardt iteration; `grid_iteration`: the same over the
-        grid's starts at once (`batched`, compiled apart: see `make_kernels`).
+        """`kernels`: the Levenberg-Marquardt iteration, from one start and over the grid's starts.
         `capture`: on CUDA, record each solve as a CUDA graph and replay it (cuda_graphs.py).
         `capacity_renderer`: render at a fixed intersection capacity (starting at `capacity`),
         so that the render never waits for the host to read the intersection count back (as
         gsplat's own does); the count is read after the solve's statistics, and a pass whose
         intersections overflowed runs again with the capacity grown."""
-        self.renderer, self.config, self.near, self.far, self.iteration = renderer, config, near, far, iteration
-        self.grid_iteration = grid_iteration
+        self.renderer, self.config, self.near, self.far, self.kernels = renderer, config, near, far, kernels
         self.capture = capture
         self.capacity_renderer, self.capacity = capacity_renderer, capacity
         self.params = level_params(config, len(config.align_iters))
@@ -316,10 +312,10 @@ class AlignTracker:
         sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
         params = level_params(self.config, len(schedule))
         if starts is None or len(schedule) < 2:
-            return align(sources, targets, params, schedule, self.iteration), sources[0].valid
-        coarse = align(sources[1:], targets[1:], params[1:], schedule[:-1], self.grid_iteration, starts)
+            return align(sources, targets, params, schedule, self.kernels.one), sources[0].valid
+        coarse = align(sources[1:], targets[1:], params[1:], schedule[:-1], self.kernels.batch, starts)
         start = best_grid_start(coarse, self.config.align_min_inliers)
-        return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.iteration, start), sources[0].valid
+        return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.kernels.one, start), sources[0].valid
 
     def _render(
         self, gaussians: Gaussians, frame: DeviceFrame, c2w: torch.Tensor
@@ -354,7 +350,7 @@ class AlignTracker:
         hold) from the render's pose."""
         schedule = schedule or self.config.align_iters
         params = level_params(self.config, len(schedule))
-        return align(sources, targets, params, schedule, self.iteration)
+        return align(sources, targets, params, schedule, self.kernels.one)
 
     @staticmethod
     def _c2w(attempt: Pass) -> torch.Tensor:

@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from torch.utils._pytree import tree_map
 
 from pipeline.geometry import backproject, pixel_grid, se3_exp
 from pipeline.slam.tracking.pyramid import RgbdLevel, same_surface
@@ -315,11 +316,25 @@ def batched(iteration: AlignIteration) -> AlignIteration:
     """`iteration` over a batch of states (each field with a leading dimension: solves from
     several starts, `lm_start` of [S, 4, 4]) against one source and target: one kernel per
     operation for all of them. Compile the result, not `iteration`: a compiled function
-    under vmap runs eager."""
+    under vmap runs eager (dynamo refuses the transform)."""
     return torch.vmap(iteration, in_dims=(0, None, None, None))
 
 
-lm_iteration_batched = batched(lm_iteration)
+def solve_of(solves: LmState, index: int) -> LmState:
+    """Solve `index` of a batch of solves (`batched`: each field with a leading dimension)."""
+    state: LmState = tree_map(lambda field: field[index], solves)
+    return state
+
+
+class AlignKernels(NamedTuple):
+    """The iteration from one start (`one`) and over a batch of starts (`batch`, `batched`),
+    compiled apart where compiled (`make_kernels`)."""
+
+    one: AlignIteration
+    batch: AlignIteration
+
+
+EAGER_ALIGN = AlignKernels(lm_iteration, batched(lm_iteration))
 
 
 def align(

@@ -58,16 +58,8 @@ def make_tracker(settings: TrackSettings) -> Tracker:
         return partial(track, settings=settings)
     capture = switched_on(config.align_graph, settings.cuda)
     fixed = settings.capacity_renderer if switched_on(config.align_fixed_capacity, settings.cuda) else None
-    kernels = settings.kernels
     aligner = AlignTracker(
-        settings.renderer,
-        config,
-        settings.near,
-        settings.far,
-        kernels.align_iteration,
-        capture,
-        fixed,
-        grid_iteration=kernels.align_grid_iteration,
+        settings.renderer, config, settings.near, settings.far, settings.kernels.align, capture, fixed
     )
     refine = replace(settings, config=replace(config, iters=config.refine_iters))
     return partial(track_aligned, aligner=aligner, refine=refine)
