@@ -230,9 +230,10 @@ def verify(
     stored colour and depth as the target, `views`) from the relative pose(s) `starts` [4, 4] or
     [S, 4, 4] float64 (the current camera in the old one's: the estimates', or `start_poses`),
     over `schedule` (default `verify_iters`): the coarse levels first from every start (one
-    batched solve, `kernels.batch`), judged (`judged` at level 1); of the starts that pass them, only the one of least RMS residual goes
-    on to the finest level, judged in full (the finest level and its target, made again for an
-    old keyframe, are most of a verification's cost: once per candidate, not once per start).
+    batched solve, `kernels.batch`), judged (`judged` at level 1); of the starts that pass them,
+    only the one of least RMS residual goes on to the finest level, judged in full (the finest
+    level and its target, made again for an old keyframe, are most of a verification's cost:
+    once per candidate, not once per start).
     None passing: the first start's failure."""
     schedule = schedule or config.verify_iters
     params = level_params(tracking, len(schedule))

@@ -310,9 +310,9 @@ class AlignTracker:
         be recorded as a CUDA graph."""
         images = (color, depth, intrinsics, render_color, render_depth, silhouette)
         sources, targets = prepare_rgbd(*images, len(schedule), self.config.align_min_silhouette)
-        params = level_params(self.config, len(schedule))
         if starts is None or len(schedule) < 2:
-            return align(sources, targets, params, schedule, self.kernels.one), sources[0].valid
+            return self.solve(sources, targets, schedule), sources[0].valid
+        params = level_params(self.config, len(schedule))
         coarse = align(sources[1:], targets[1:], params[1:], schedule[:-1], self.kernels.batch, starts)
         start = best_grid_start(coarse, self.config.align_min_inliers)
         return align(sources[:1], targets[:1], params[:1], schedule[-1:], self.kernels.one, start), sources[0].valid
@@ -383,9 +383,8 @@ def best_grid_start(solves: LmState, min_inliers: float) -> torch.Tensor:
     rms = (fit.geometric_sq.double() / fit.inliers.clamp(min=1)).sqrt()
     enough = (fit.inliers >= min_inliers * fit.associated) & (fit.inliers > 0)
     ranked = torch.where(enough, rms, torch.full_like(rms, float("inf")))
-    return solves.pose.index_select(0, ranked.argmin().reshape(1))[
-        0
-    ]  # not pose[argmin]: a 0-d index is read to the host
+    # not pose[argmin]: indexing by a 0-d tensor reads it to the host (no CUDA-graph recording then)
+    return solves.pose.index_select(0, ranked.argmin().reshape(1))[0]
 
 
 def fitting_schedule(schedule: tuple[int, ...], height: int, width: int) -> tuple[int, ...]:
