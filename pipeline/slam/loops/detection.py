@@ -32,7 +32,6 @@ from pipeline.slam.loops.views import KeyframeViews
 from pipeline.slam.tracking.align_tracker import SolveReport, level_params, read_report
 from pipeline.slam.tracking.rgbd_alignment import (
     EAGER_ALIGN,
-    AlignIteration,
     AlignKernels,
     AlignParams,
     SourcePoints,
@@ -239,7 +238,7 @@ def verify(
     params = level_params(tracking, len(schedule))
     start = starts.reshape(-1, 4, 4)
     if len(schedule) > 1:
-        fits = _coarse_fits(sources, views.coarse(old), params, schedule, start, config, tracking, kernels.batch)
+        fits = _coarse_fits(sources, views.coarse(old), params, schedule, start, config, tracking, kernels)
         passing = [fit for fit in fits if not fit.failure]
         if not passing:
             return fits[0]
@@ -260,15 +259,20 @@ def _coarse_fits(
     starts: torch.Tensor,
     config: LoopConfig,
     tracking: TrackingConfig,
-    batch_iteration: AlignIteration,
+    kernels: AlignKernels,
 ) -> list[Verification]:
     """The coarse levels (1 and up) of a verification from each of `starts` [S, 4, 4] float64
-    (one solve for all, `batch_iteration`), each judged at level 1 (no information: an edge is
-    made at the finest level only)."""
-    solves = align(sources[1:], coarse, params[1:], schedule[:-1], batch_iteration, start=starts)
+    (one solve for all, `kernels.batch`), each judged at level 1 (no information: an edge is
+    made at the finest level only). A single start is solved by `kernels.one`: the batched
+    iteration is compiled for the tracker's grid of starts, and one start would compile it again
+    in the middle of a run (16 s in one search on the H200, e15cbe0)."""
+    if len(starts) == 1:
+        states = [align(sources[1:], coarse, params[1:], schedule[:-1], kernels.one, start=starts[0])]
+    else:
+        solves = align(sources[1:], coarse, params[1:], schedule[:-1], kernels.batch, start=starts)
+        states = [solve_of(solves, index) for index in range(len(starts))]
     fits = []
-    for index in range(len(starts)):
-        state = solve_of(solves, index)
+    for state in states:
         report = read_report(state, sources[1].valid)
         failure = judged(report, config, tracking, level=1)
         fits.append(
