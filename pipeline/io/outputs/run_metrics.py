@@ -170,6 +170,7 @@ class LoopRecord:
     dropped_by_graph: int = 0
     searches: int = 0  # keyframes searched
     search_ms: float | None = None  # mean per keyframe searched (odometry alignment, candidates, verification)
+    search_max_ms: float | None = None  # the longest search
     closed: list[ClosedLoopRow] = field(default_factory=list)
 
     @staticmethod
@@ -184,6 +185,7 @@ class LoopRecord:
             dropped_by_graph=tally.dropped_by_graph,
             searches=tally.searches,
             search_ms=1000 * tally.search_s / tally.searches if tally.searches else None,
+            search_max_ms=1000 * tally.search_max_s if tally.searches else None,
             closed=[ClosedLoopRow.of(loop) for loop in closed],
         )
 

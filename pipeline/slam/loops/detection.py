@@ -141,6 +141,7 @@ class LoopTally:
     dropped_by_graph: int = 0  # accepted, then left out by the pose graph's optimum
     searches: int = 0  # keyframes searched (every keyframe kept)
     search_s: float = 0.0  # seconds over all searches: the odometry edge's alignment, candidates, verification
+    search_max_s: float = 0.0  # the longest search: a compile or a stall that the mean hides
 
     def counted(self, detection: LoopDetection, seconds: float) -> LoopTally:
         """With one keyframe's search, which took `seconds`."""
@@ -149,6 +150,7 @@ class LoopTally:
             self,
             searches=self.searches + 1,
             search_s=self.search_s + seconds,
+            search_max_s=max(self.search_max_s, seconds),
             detected=self.detected + detection.detected,
             verified=self.verified + detection.verified,
             accepted=self.accepted + detection.accepted,
