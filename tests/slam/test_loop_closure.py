@@ -13,6 +13,7 @@ import copy
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -38,7 +39,7 @@ from pipeline.slam.loops.detection import (
 from pipeline.slam.loops.pose_graph import chained, edge_residual, fixed_information, optimise
 from pipeline.slam.loops.search import LoopSearch
 from pipeline.slam.tracking.align_tracker import SolveReport
-from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, LmState
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignIteration, AlignKernels, LmState
 from pipeline.stages.upload import host_frame_tensors
 
 F64 = torch.float64
@@ -156,6 +157,28 @@ def test_in_the_trap_room_appearance_alone_proposes_a_loop_but_none_is_accepted(
     poses = torch.stack([k.c2w.double() for k in keyframes])
     graph = chained(poses, fixed_information(0.01, 0.5).repeat(len(poses), 1, 1), ())
     assert optimise(graph, CONFIG).c2w is graph.c2w  # nothing accepted, nothing moves
+
+
+def test_compiled_kernels_are_warmed_once_at_the_first_keyframe_from_one_start_and_from_the_grid(
+    loop_sequence: Sequence,
+) -> None:
+    starts_seen: list[tuple[str, int]] = []
+
+    def counting(name: str, iteration: AlignIteration) -> AlignIteration:
+        def counted(state: LmState, *rest: Any) -> LmState:
+            starts_seen.append((name, state.pose.shape[0] if state.pose.dim() == 3 else 1))
+            return iteration(state, *rest)
+
+        return counted
+
+    compiled_stand_in = AlignKernels(counting("one", EAGER_ALIGN.one), counting("batch", EAGER_ALIGN.batch))
+    loops = LoopSearch(CONFIG, TRACKING, compiled_stand_in)
+    first = loop_sequence.keyframes[:1]
+    loops.warm_up(first, loop_sequence.intrinsics)
+    assert ("one", 1) in starts_seen and ("batch", 9) in starts_seen  # both iterations, at the grid's nine starts
+    warmed = len(starts_seen)
+    loops.warm_up(loop_sequence.keyframes[:2], loop_sequence.intrinsics)
+    assert len(starts_seen) == warmed  # once a run
 
 
 def _refused(*args: object) -> LmState:

@@ -184,7 +184,9 @@ class LoopCloser:
 
     def keyframe_kept(self, keyframes: list[Keyframe], intrinsics: torch.Tensor) -> Correction | None:
         """The newest of `keyframes` (the store, oldest first) was just kept: its node and
-        odometry edge, then the loop search; -> the correction when a loop is closed."""
+        odometry edge, then the loop search; -> the correction when a loop is closed. The
+        search's warm-up (the first keyframe's, `LoopSearch.warm_up`) is not counted as a search."""
+        self.search.warm_up(keyframes, intrinsics)
         started = time.perf_counter()
         sources = self.search.kept(keyframes, intrinsics)
         self._add_node(keyframes, sources, intrinsics)
