@@ -152,6 +152,7 @@ def row_of(cell: Cell, metrics: RunMetrics) -> dict[str, Any]:
         "loops_closed": len(closed) if loops else None,
         "loop_search_ms": loops.search_ms if loops else None,
         "loop_search_max_ms": loops.search_max_ms if loops else None,
+        "loop_search_wait_ms": loops.search_wait_ms if loops else None,
         "loop_correct_ms": max((c.correct_ms for c in closed), default=None),
         "loop_published_ms": max((c.published_ms for c in closed), default=None),
         "warmup_frames_excluded": t.warmup_frames_excluded,

@@ -171,6 +171,7 @@ class LoopRecord:
     searches: int = 0  # keyframes searched
     search_ms: float | None = None  # mean per keyframe searched (odometry alignment, candidates, verification)
     search_max_ms: float | None = None  # the longest search
+    search_wait_ms: float | None = None  # mean per search: waiting for the device's queued work before it
     closed: list[ClosedLoopRow] = field(default_factory=list)
 
     @staticmethod
@@ -186,6 +187,7 @@ class LoopRecord:
             searches=tally.searches,
             search_ms=1000 * tally.search_s / tally.searches if tally.searches else None,
             search_max_ms=1000 * tally.search_max_s if tally.searches else None,
+            search_wait_ms=1000 * tally.search_wait_s / tally.searches if tally.searches else None,
             closed=[ClosedLoopRow.of(loop) for loop in closed],
         )
 

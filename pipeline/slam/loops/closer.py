@@ -51,6 +51,17 @@ class Correction:
     started: float  # time.perf_counter() when the detection began
 
 
+def queued_work_done(device: torch.device) -> float:
+    """Seconds until `device` has run the work queued before a search (the mapping side's, which
+    under `process` shares the GPU with the tracking process), counted apart: a search's own time
+    then starts on an idle queue, where its first host read would otherwise wait for it."""
+    if device.type != "cuda":
+        return 0.0
+    started = time.perf_counter()
+    torch.cuda.synchronize(device)
+    return time.perf_counter() - started
+
+
 class LoopCloser:
     searches_lost_frames = True  # a frame tracking lost is searched for a loop (`frame_lost`)
 
@@ -140,6 +151,7 @@ class LoopCloser:
         keyframes); nothing changed but the tally and the sightings kept for the next search."""
         if not keyframes:
             return None
+        waited = queued_work_done(lost.depth.device)
         started = time.perf_counter()
         trial = [*keyframes, lost]
         sources = self.search.kept(trial, intrinsics)
@@ -147,7 +159,7 @@ class LoopCloser:
         if not step.failure:
             previous = keyframes[-1].c2w.detach().to("cpu", F64)
             trial[-1] = replace(lost, c2w=(previous @ step.relative).to(lost.c2w))
-        detection = self._detect(trial, sources, intrinsics, started, lost=True)
+        detection = self._detect(trial, sources, intrinsics, started, waited, lost=True)
         if not detection.accepted:
             return None
         before = replace(self.state, node_positions=list(self.state.node_positions), loops=list(self.state.loops))
@@ -187,10 +199,11 @@ class LoopCloser:
         odometry edge, then the loop search; -> the correction when a loop is closed. The
         search's warm-up (the first keyframe's, `LoopSearch.warm_up`) is not counted as a search."""
         self.search.warm_up(keyframes, intrinsics)
+        waited = queued_work_done(keyframes[-1].depth.device)
         started = time.perf_counter()
         sources = self.search.kept(keyframes, intrinsics)
         self._add_node(keyframes, sources, intrinsics)
-        return self._closed(keyframes, self._detect(keyframes, sources, intrinsics, started), started)
+        return self._closed(keyframes, self._detect(keyframes, sources, intrinsics, started, waited), started)
 
     def _add_node(self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor) -> None:
         """The newest of `keyframes` (`sources`: its pyramid as points) becomes the graph's newest
@@ -208,15 +221,16 @@ class LoopCloser:
         sources: list[SourcePoints],
         intrinsics: torch.Tensor,
         started: float,
+        waited: float,
         lost: bool = False,
     ) -> LoopDetection:
         """The loop search of the newest of `keyframes` (the node it has or would have; `lost`: a
-        frame tracking lost), counted."""
+        frame tracking lost), counted with the `waited` seconds before it (`queued_work_done`)."""
         node = len(self.state.node_positions) - (keyframes[-1].pose.position in self.state.node_of())
         generator = torch.Generator().manual_seed(self.seed + node)  # no state to keep: one draw per node
         pixels = sample_valid_pixels(keyframes[-1].depth, self.samples, generator)
         detection = self.search.detect(keyframes, sources, intrinsics, pixels, lost)
-        self.state.tally = self.state.tally.counted(detection, time.perf_counter() - started)
+        self.state.tally = self.state.tally.counted(detection, time.perf_counter() - started, waited)
         return detection
 
     def _closed(self, keyframes: list[Keyframe], detection: LoopDetection, started: float) -> Correction | None:

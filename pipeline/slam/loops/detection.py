@@ -142,15 +142,17 @@ class LoopTally:
     searches: int = 0  # keyframes searched (every keyframe kept)
     search_s: float = 0.0  # seconds over all searches: the odometry edge's alignment, candidates, verification
     search_max_s: float = 0.0  # the longest search: a compile or a stall that the mean hides
+    search_wait_s: float = 0.0  # seconds over all searches waiting, before each, for the device's queued work
 
-    def counted(self, detection: LoopDetection, seconds: float) -> LoopTally:
-        """With one keyframe's search, which took `seconds`."""
+    def counted(self, detection: LoopDetection, seconds: float, waited: float = 0.0) -> LoopTally:
+        """With one keyframe's search, which took `seconds` after `waited` for the device."""
         verdicts = [check.verdict for check in detection.checks]
         return replace(
             self,
             searches=self.searches + 1,
             search_s=self.search_s + seconds,
             search_max_s=max(self.search_max_s, seconds),
+            search_wait_s=self.search_wait_s + waited,
             detected=self.detected + detection.detected,
             verified=self.verified + detection.verified,
             accepted=self.accepted + detection.accepted,

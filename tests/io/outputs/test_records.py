@@ -60,19 +60,27 @@ def test_loop_closure_s_outcome_round_trips_through_json() -> None:
         RunMetrics.from_json({**table, "loops": {**table["loops"], "closed": {"frame": 40}}})
 
 
-def test_the_tally_keeps_the_longest_search_beside_the_total() -> None:
+def test_the_tally_keeps_the_longest_search_and_the_wait_before_searches_beside_the_total() -> None:
     nothing_found = LoopDetection(current=3, checks=())
-    tally = LoopTally().counted(nothing_found, 0.05).counted(nothing_found, 16.0).counted(nothing_found, 0.07)
+    tally = LoopTally().counted(nothing_found, 0.05).counted(nothing_found, 16.0, 0.3).counted(nothing_found, 0.07)
     assert (tally.searches, tally.search_s, tally.search_max_s) == (3, pytest.approx(16.12), 16.0)
-    assert LoopRecord.of(tally, []).search_max_ms == pytest.approx(16000.0)
+    assert tally.search_wait_s == pytest.approx(0.3)  # apart from the searches' own time
+    record = LoopRecord.of(tally, [])
+    assert record.search_max_ms == pytest.approx(16000.0) and record.search_wait_ms == pytest.approx(100.0)
 
 
 def test_a_loop_record_is_the_tally_and_each_closed_loop_in_cm_degrees_and_ms() -> None:
     tally = LoopTally(detected=8, verified=6, accepted=3, rejected=5, failed_verification=2, unconfirmed=1,
-                      dropped_by_graph=1, searches=4, search_s=0.2, search_max_s=0.11)  # fmt: skip
+                      dropped_by_graph=1, searches=4, search_s=0.2, search_max_s=0.11, search_wait_s=0.04)  # fmt: skip
     loops = LoopRecord.of(tally, [_closed_loop(40, (3, 11))])
-    counts = {k: v for k, v in dataclasses.asdict(loops).items() if k not in ("closed", "search_ms", "search_max_ms")}
-    assert counts == {k: v for k, v in dataclasses.asdict(tally).items() if k not in ("search_s", "search_max_s")}
+    counts = {
+        k: v
+        for k, v in dataclasses.asdict(loops).items()
+        if k not in ("closed", "search_ms", "search_max_ms", "search_wait_ms")
+    }
+    assert counts == {
+        k: v for k, v in dataclasses.asdict(tally).items() if k not in ("search_s", "search_max_s", "search_wait_s")
+    }
     assert loops.search_ms == pytest.approx(50.0)  # the mean per keyframe searched
     assert loops.search_max_ms == pytest.approx(110.0)
     assert LoopRecord.of(LoopTally(), []).search_ms is None
