@@ -11,12 +11,12 @@ from pipeline.errors import UserError
 from pipeline.geometry import se3_exp, skew
 from pipeline.slam.tracking.pyramid import check_pyramid_fits, halve_depth, halve_intrinsics, rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
-    cholesky_solve_small,
     damped_step,
     photometric_jacobian,
     point_to_plane_jacobian,
     project_points,
     sample_bilinear,
+    solve_positive_definite,
 )
 
 F64 = torch.float64
@@ -143,12 +143,12 @@ def test_damped_step_solves_the_normal_equations_and_never_returns_nan() -> None
     assert damped_step(torch.full((6, 6), math.nan, dtype=F64), gradient, tiny).abs().max() == 0
 
 
-def test_the_written_out_cholesky_solve_equals_torch_linalg_and_flags_an_indefinite_system() -> None:
+def test_the_written_out_solve_equals_torch_linalg_and_flags_an_indefinite_system() -> None:
     gen = torch.Generator().manual_seed(6)
     rows = torch.randn(9, 40, 6, generator=gen, dtype=F64)
     systems, rhs = rows.mT @ rows, torch.randn(9, 6, generator=gen, dtype=F64)
-    solved, factored = torch.vmap(cholesky_solve_small)(systems, rhs)  # as under `batched`
+    solved, factored = torch.vmap(solve_positive_definite)(systems, rhs)  # as under `batched`
     torch.testing.assert_close(solved, torch.linalg.solve(systems, rhs), rtol=1e-10, atol=1e-12)
     assert bool(factored.all())
     indefinite = torch.diag(torch.tensor([1.0, 2.0, -1.0, 3.0, 1.0, 1.0], dtype=F64))
-    assert not bool(cholesky_solve_small(indefinite, rhs[0])[1])
+    assert not bool(solve_positive_definite(indefinite, rhs[0])[1])

@@ -271,39 +271,29 @@ def damped_step(hessian: torch.Tensor, gradient: torch.Tensor, damping: torch.Te
     diagonal = torch.diagonal(hessian)
     floor = DIAGONAL_FLOOR * diagonal.mean() + 1e-12
     system = hessian + torch.diag(damping * diagonal + floor)
-    step, factored = cholesky_solve_small(system, -gradient)
-    usable = factored & torch.isfinite(step).all()
+    step, definite = solve_positive_definite(system, -gradient)
+    usable = definite & torch.isfinite(step).all()
     return torch.where(usable, step, torch.zeros_like(step))
 
 
-def cholesky_solve_small(system: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """x [n] with `system` [n, n] (symmetric) x = `rhs` [n] by a Cholesky factorisation written out
-    as tensor operations (n of a few), and whether `system` is positive definite (a 0-d bool).
+def solve_positive_definite(system: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x [n] with `system` [n, n] (symmetric) x = `rhs` [n] by Gauss-Jordan elimination without
+    row exchanges, written out as tensor operations (n of a few), and whether `system` is
+    positive definite (a 0-d bool: every pivot positive, as they are exactly then).
 
     Not torch.linalg: under `batched` a batch of factorisations goes to MAGMA on CUDA, which
-    allocates device memory and so cannot be recorded in a CUDA graph; written out, it is a
-    handful of element-wise kernels that the compiled iteration fuses."""
+    allocates device memory and so cannot be recorded in a CUDA graph. Written out it is four
+    element-wise kernels a column (which the compiled iteration fuses); a positive definite
+    system needs no row exchanges."""
     n = system.shape[-1]
-    rows = torch.arange(n, device=system.device)
-    columns: list[torch.Tensor] = []  # of the factor L, each [n] with zeros above the diagonal
-    pivots: list[torch.Tensor] = []
-    for j in range(n):
-        column = system[:, j]
-        for earlier in columns:
-            column = column - earlier * earlier[j]
-        pivots.append(column[j])
-        root = column[j].clamp(min=torch.finfo(system.dtype).tiny).sqrt()
-        columns.append(torch.where(rows >= j, column / root, torch.zeros_like(column)))
-    y = rhs  # forward substitution, L y = rhs, column by column
-    solved: list[torch.Tensor] = []
-    for j, column in enumerate(columns):
-        solved.append(y[j] / column[j])
-        y = y - column * solved[j]
-    x = torch.zeros_like(rhs)  # back substitution, L^T x = y
-    for j in reversed(range(n)):
-        x_j = (solved[j] - (columns[j] * x).sum()) / columns[j][j]
-        x = torch.where(rows == j, x_j, x)
-    return x, (torch.stack(pivots) > 0).all()
+    augmented = torch.cat([system, rhs[:, None]], dim=1)  # [n, n + 1]
+    rows = torch.arange(n, device=system.device)[:, None]
+    pivots = []
+    for k in range(n):
+        pivots.append(augmented[k, k])
+        row = augmented[k] / augmented[k, k]
+        augmented = torch.where(rows == k, row, augmented - augmented[:, k : k + 1] * row)
+    return augmented[:, n], (torch.stack(pivots) > 0).all()
 
 
 def lm_start(pose: torch.Tensor) -> LmState:
