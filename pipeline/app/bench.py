@@ -149,7 +149,8 @@ COLUMNS = [
     ("frames_mapped", "{}"), ("large_steps", "{}"), ("large_step_error_cm", "{:.2f}"),
     ("ate_before_loops_cm", "{:.2f}"), ("loops_detected", "{}"), ("loops_accepted", "{}"), ("loops_rejected", "{}"),
     ("loops_closed", "{}"),
-    ("loop_search_ms", "{:.1f}"), ("loop_search_max_ms", "{:.1f}"), ("loop_search_wait_ms", "{:.1f}"), ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
+    ("loop_search_ms", "{:.1f}"), ("loop_search_max_ms", "{:.1f}"), ("loop_search_wait_ms", "{:.1f}"),
+    ("loop_correct_ms", "{:.1f}"), ("loop_published_ms", "{:.1f}"),
 ]  # fmt: skip
 
 

@@ -86,8 +86,12 @@ def relative_motion(
     frame's index), under the strictest ratio test of `RATIO_TESTS` that yields one; None when
     under each fewer than `min_inliers` matches agree with it in the image and in depth."""
     first, second, ratio = match(earlier, later)
+    tried = -1
     for limit in RATIO_TESTS:
         kept = ratio < limit
+        if int(kept.sum()) == tried:  # no match more than under the stricter test: the same solve again
+            continue
+        tried = int(kept.sum())
         motion = _motion(earlier.points[first[kept]], later.pixels[second[kept]], later.points[second[kept]],
                          intrinsics, width, min_inliers)  # fmt: skip
         if motion is not None:
