@@ -140,6 +140,10 @@ run_part() {
     warm-start-compile)  # issue 34: what torch.compile costs at the start and buys once steady, under CUDA graphs (no dataset to carry)
               bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_compile_tiny \
                 --variants sequential-keyframe,sequential-keyframe-no-compile,process,process-no-compile ;;
+    warm-start-thread)  # issue 34: the thread schedule's start against the process schedule's and one thread's (no dataset)
+              bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_thread_tiny \
+                --variants sequential-keyframe,process,thread ;;
+    pace-thread) bench synthetic-tum --presets tiny,small --variants sequential,process,thread --stem pace_thread ;;  # 200 frames
     odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
               bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \
                 --set dataset.width=640 --set dataset.height=480 --stem odometry_slow_tiny ;;

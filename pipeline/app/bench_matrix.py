@@ -20,6 +20,8 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "align": ("tracking.method=align",),  # dense RGB-D alignment to one render
     "align-refine": ("tracking.method=align", "tracking.refine_iters=2"),  # then 2 of adam's iterations
     "process": ("slam.schedule=process",),  # mapping in its own process, refining between frames
+    "thread": ("slam.schedule=thread",),  # the process schedule's mapping side in a thread: no second start-up
+    "thread-odometry-loops": ("slam.schedule=thread", "tracking.odometry=features", "loops.enabled=true"),
     "process-keyframe": ("slam.schedule=process", "mapping.rate=keyframe"),  # keyframes only densified and mapped
     "process-frame": ("slam.schedule=process", "mapping.rate=frame"),  # every frame mapped (the rate before keyframe)
     "process-views2": ("slam.schedule=process", "mapping.views_per_step=2"),

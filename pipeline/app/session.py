@@ -160,8 +160,9 @@ def open_session(
 
 
 def _slam_of(config: Config, source: Source, device: torch.device) -> SteppedSlam:
-    """SLAM of the configured schedule: mapping in this process, or in one of its own."""
-    if config.slam.schedule == "process":
+    """SLAM of the configured schedule: mapping in this thread, or beside it in a process or a
+    thread of its own."""
+    if config.slam.schedule in ("process", "thread"):
         return start_process_slam(config, device, source.live)
     return SplaTAM(config, make_renderer(config.render, config.gaussians, device), device)
 

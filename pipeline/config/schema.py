@@ -15,7 +15,7 @@ LoaderKind = Literal["pipelined", "sync"]
 Switch = Literal["auto", "on", "off"]
 MapOptimizerKind = Literal["adam", "selective_adam"]
 MappingRate = Literal["auto", "frame", "keyframe"]
-Schedule = Literal["sequential", "process"]
+Schedule = Literal["sequential", "process", "thread"]
 TrackingMethod = Literal["adam", "align"]
 OdometryKind = Literal["features", "off"]
 ViewerKind = Literal["viser", "open3d", "rerun"]
@@ -29,9 +29,9 @@ def switched_on(switch: Switch, cuda: bool) -> bool:
 
 
 def keyframe_rate(rate: MappingRate, schedule: Schedule) -> bool:
-    """Whether only keyframes are mapped (`mapping.rate`; auto: under the process schedule only,
-    so that `sequential` stays SplaTAM's order unless asked)."""
-    return rate == "keyframe" or (rate == "auto" and schedule == "process")
+    """Whether only keyframes are mapped (`mapping.rate`; auto: under the process and thread
+    schedules only, so that `sequential` stays SplaTAM's order unless asked)."""
+    return rate == "keyframe" or (rate == "auto" and schedule != "sequential")
 
 
 @dataclass(frozen=True)
@@ -235,7 +235,7 @@ class RenderConfig:
 class SlamConfig:
     """How tracking and mapping share the frames."""
 
-    schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own
+    schedule: Schedule = "sequential"  # sequential: one frame at a time; process: mapping in a process of its own; thread: the same in a thread of this process (no second start-up; the GIL shared)
     max_lead: int = 2  # process, offline: frames tracking may run ahead of mapping (mapping.rate=keyframe: keyframes; live: no bound)
     backend_timeout_s: float = 120.0  # process: mapping silent this long is hung (first compile ~1 min)
 

@@ -160,6 +160,26 @@ def test_the_process_schedule_warms_its_tracker_while_mapping_starts() -> None:
         slam.close()
 
 
+def test_the_thread_schedule_maps_beside_tracking_on_a_stream_of_its_own() -> None:
+    """Mapping's graphs recorded and replayed in a thread of this process while tracking's run
+    in the main thread: a pose per frame, keyframes mapped, the track as close as sequential's."""
+    overrides = ["slam.schedule=thread", "keyframes.every=3"]
+    config = with_dataset_defaults(load_config("tiny", overrides=overrides), "replica")
+    slam = start_process_slam(config, CUDA, live=False)
+    try:
+        frames = _device_frames(8)
+        results = [slam.step(frame, is_last=frame.index == len(frames) - 1) for frame in frames]
+        slam.finish(0)
+        assert not any(r.lost for r in results) and len(slam.poses) == len(frames)
+        assert slam.mapping_summary()["frames_mapped"] >= 3 and not slam.failure
+        start = invert_pose(frames[0].c2w_gt.cpu().float())
+        for pose, frame in zip(slam.poses, frames):
+            reference = start @ frame.c2w_gt.cpu().float()
+            assert float(torch.linalg.norm(pose[:3, 3].cpu() - reference[:3, 3])) < 0.08
+    finally:
+        slam.close()
+
+
 def test_the_tracker_at_a_fixed_capacity_equals_gsplats_own_render() -> None:
     """gsplat's kernels around our intersection list, at a capacity that overflows first: the
     align tracker's pose equals the one from gsplat's eager render."""

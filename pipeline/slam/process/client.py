@@ -35,6 +35,7 @@ from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
 from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
+from pipeline.slam.process.mapping_thread import ThreadContext
 from pipeline.slam.process.shared_map import (
     NEWEST_SLOT,
     VERSION,
@@ -57,7 +58,11 @@ ABANDONED = "stopped waiting for the mapping process (a second signal)"
 
 class MappingProcess:
     def __init__(self, config: Config, device: torch.device, live: bool) -> None:
-        context = mp.get_context("spawn")
+        """Start the mapping side: a process of its own, or under `slam.schedule=thread` a thread
+        of this process (mapping_thread.py)."""
+        self.in_thread = config.slam.schedule == "thread"
+        self.side = "the mapping thread" if self.in_thread else "the mapping process"  # in what it reports
+        context: Any = ThreadContext() if self.in_thread else mp.get_context("spawn")
         self.config = config
         self.device = device
         self.live = live
@@ -72,7 +77,7 @@ class MappingProcess:
         setup = MappingSetup(
             config, str(device), self.control, self.reader.first, self.heartbeat, self.ring_books,
             self.to_mapping, self.from_mapping, live, max(1, torch.get_num_threads() // 2), self.stop_refining,
-            time.monotonic(),
+            time.monotonic(), self.in_thread,
         )  # fmt: skip
         self.process = context.Process(target=run_mapping_process, args=(setup,), name="gsplatam-mapping", daemon=True)
         with signals_blocked():
@@ -91,6 +96,7 @@ class MappingProcess:
         self._done: queue.SimpleQueue[m.Done | None] = queue.SimpleQueue()  # None: the process failed
         self._changed = threading.Condition()  # notified whenever the mapping process says anything
         self._closing = threading.Event()
+        self._ended = threading.Event()  # set by close() once the mapping side ended (or was left behind)
         self._listener = threading.Thread(target=self._listen, name="mapping-listener", daemon=True)
         self._listener.start()
 
@@ -203,9 +209,13 @@ class MappingProcess:
             self.process.join(SHUTDOWN_S)
         if self.process.is_alive():
             if not self.failure:
-                log.warning("the mapping process did not end within %.0f s: killed", SHUTDOWN_S)
+                log.warning(
+                    "%s did not end within %.0f s: %s", self.side, SHUTDOWN_S, "left" if self.in_thread else "killed"
+                )
             self.process.kill()  # SIGKILL: a hung (even a stopped) process ends too
-            self.process.join()
+            if not self.in_thread:  # (a thread cannot be killed: a hung one is left, a daemon)
+                self.process.join()
+        self._ended.set()
         self._listener.join()
         self.reader.release()
 
@@ -252,7 +262,7 @@ class MappingProcess:
                 message = None
             if message is not None:
                 self._dispatch(message)
-            if self._closing.is_set() and not self.process.is_alive():
+            if self._ended.is_set():
                 return
             if not self.failure and not self._closing.is_set():
                 self._watch()
@@ -275,8 +285,8 @@ class MappingProcess:
         elif isinstance(message, m.StartedUp):
             self.started_up = message
             log.debug(
-                "the mapping process started: interpreter and imports %.1f s, set-up %.1f s",
-                message.interpreter_s, message.setup_s,
+                "%s started: interpreter and imports %.1f s, set-up %.1f s",
+                self.side, message.interpreter_s, message.setup_s,
             )  # fmt: skip
         elif isinstance(message, m.Refined):
             self.refinement_renders += message.renders
@@ -289,12 +299,12 @@ class MappingProcess:
             self._done.put(message)
         elif isinstance(message, m.MappingFailed):
             advice = f"; {shared_memory_advice()}" if "unable to allocate shared memory" in message.error else ""
-            self._fail(f"the mapping process failed: {message.error.splitlines()[0]}{advice}")
+            self._fail(f"{self.side} failed: {message.error.splitlines()[0]}{advice}")
             log.debug("the mapping process's traceback:\n%s", message.error)
 
     def _watch(self) -> None:
         if not self.process.is_alive():
-            self._fail(f"the mapping process ended unexpectedly (exit code {self.process.exitcode})")
+            self._fail(f"{self.side} ended unexpectedly (exit code {self.process.exitcode})")
             return
         now = time.monotonic()
         step, self._last_watch = min(now - self._last_watch, MAX_WATCH_STEP_S), now
@@ -306,12 +316,10 @@ class MappingProcess:
         timeout = self.config.slam.backend_timeout_s
         if beat == 0.0:  # still starting (importing torch, initialising CUDA)
             if self._silent_s > max(STARTUP_S, timeout):
-                self._fail(f"the mapping process did not start within {max(STARTUP_S, timeout):.0f} s")
+                self._fail(f"{self.side} did not start within {max(STARTUP_S, timeout):.0f} s")
             return
         if self._silent_s > timeout:
-            self._fail(
-                f"the mapping process has shown no sign of life for {self._silent_s:.0f} s (slam.backend_timeout_s)"
-            )
+            self._fail(f"{self.side} has shown no sign of life for {self._silent_s:.0f} s (slam.backend_timeout_s)")
 
     def _fail(self, why: str) -> None:
         if not self.failure:

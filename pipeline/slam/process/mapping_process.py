@@ -55,15 +55,21 @@ class MappingSetup:
     threads: int  # torch's CPU threads in this process
     stop_refining: Any  # a multiprocessing event: set, a final refinement ends at its next step
     spawned: float  # time.monotonic() when the parent started this process (one clock for both)
+    in_thread: bool  # a thread of the tracking process (`slam.schedule=thread`, mapping_thread.py)
 
 
 def run_mapping_process(setup: MappingSetup) -> None:
-    """The process's target: the loop until Shutdown; a failure is reported, then raised."""
+    """The process's (or the thread's) target: the loop until Shutdown; a failure is reported,
+    then raised."""
     entered = time.monotonic()
-    _leave_signals_to_the_parent()
-    end_with_the_parent()  # nothing to save here: the parent owns the run's files
+    if not setup.in_thread:  # a thread shares the process's signals, parent and CPU threads
+        _leave_signals_to_the_parent()
+        end_with_the_parent()  # nothing to save here: the parent owns the run's files
     try:
-        torch.set_num_threads(setup.threads)
+        if setup.in_thread:
+            _use_a_stream_of_its_own(torch.device(setup.device))
+        else:
+            torch.set_num_threads(setup.threads)
         importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it (seconds): start-up
         loop = MappingLoop(setup)
         setup.outbox.put(m.StartedUp(entered - setup.spawned, time.monotonic() - entered))
@@ -71,6 +77,13 @@ def run_mapping_process(setup: MappingSetup) -> None:
     except BaseException as exc:
         setup.outbox.put(m.MappingFailed(f"{exc.__class__.__name__}: {exc}\n{traceback.format_exc()}"))
         raise
+
+
+def _use_a_stream_of_its_own(device: torch.device) -> None:
+    """A mapping thread's kernels on a CUDA stream of their own, beside tracking's (the current
+    stream is per thread); the map slots and the frame ring synchronise the current stream."""
+    if device.type == "cuda":
+        torch.cuda.set_stream(torch.cuda.Stream(device))
 
 
 def _leave_signals_to_the_parent() -> None:

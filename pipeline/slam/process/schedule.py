@@ -1,4 +1,5 @@
-"""SplaTAM with its mapping side in a process of its own (`slam.schedule=process`).
+"""SplaTAM with its mapping side in a process of its own (`slam.schedule=process`), or in a
+thread of this process on a CUDA stream of its own (`slam.schedule=thread`, mapping_thread.py).
 
 Tracking stays in the pipeline's process: each frame is tracked against the newest complete
 map version, and its result is ready at once; the frame then goes to the mapping process
@@ -252,8 +253,9 @@ class ProcessSplaTAM:
         return renders
 
     def sample_kernels(self, step: str) -> float:
-        """Kernel recording in the mapping process (`KernelSampler`)."""
-        return self.mapping.sample_kernels(step)
+        """Kernel recording in the mapping process (`KernelSampler`); a mapping thread's kernels
+        are in this process's own recording (CUPTI records a process's every stream): none apart."""
+        return 0.0 if self.mapping.in_thread else self.mapping.sample_kernels(step)
 
     def mapping_summary(self) -> dict[str, Any]:
         """What the mapping process did: frames mapped and passed over, their mean times, and the

@@ -1,0 +1,105 @@
+"""The thread schedule: the process schedule's mapping side in a thread of this process."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from pipeline.app.cli import main
+from pipeline.io.outputs.checkpoint import read_checkpoint
+from pipeline.slam.mapping.backend import MappingBackend
+from pipeline.slam.process.mapping_thread import ThreadLock
+from pipeline.stages.sinks import ResultSink
+
+FAST = ["tracking.iters=3", "mapping.iters=3", "slam.schedule=thread", "run.save_every_s=1e9"]
+
+
+def _run_argv(dataset: Path, output: Path, extra: list[str]) -> list[str]:
+    sets = [f"--set={s}" for s in FAST + extra]
+    return ["run", str(dataset), "--preset", "tiny", "--device", "cpu", "--quiet", "--output", str(output),
+            "--name", "r", *sets]  # fmt: skip
+
+
+def _saved_rows(folder: Path) -> list[int]:
+    return [int(line.split(",")[0]) for line in (folder / "frames.csv").read_text().splitlines()[1:]]
+
+
+def test_the_lock_takes_multiprocessing_timeouts() -> None:
+    lock = ThreadLock()
+    assert lock.acquire(timeout=None)
+    assert not lock.acquire(timeout=0.01) and not lock.acquire(block=False, timeout=5)
+    lock.release()
+    with lock:
+        assert not lock.acquire(block=False)
+
+
+@pytest.mark.slow
+def test_mapping_runs_in_a_thread_of_this_process(
+    replica_seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every frame tracked and mapped, with no second process, by a thread named for it."""
+    consume = ResultSink.consume
+    seen: list[tuple[list[str], list[str]]] = []
+
+    def consume_and_look(self: ResultSink, result: Any) -> None:
+        consume(self, result)
+        threads = [t.name for t in threading.enumerate() if t.name == "gsplatam-mapping"]
+        seen.append((threads, [p.name for p in multiprocessing.active_children()]))
+
+    monkeypatch.setattr(ResultSink, "consume", consume_and_look)
+    assert main(_run_argv(replica_seq, tmp_path, ["mapping.rate=frame"])) == 0
+    metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert metrics["schedule"] == "thread" and metrics["frames"] == 6
+    assert metrics["mapping_process"]["frames_mapped"] == 6 and metrics["ate"]["rmse_cm"] < 5
+    assert len(seen) == 6 and all(threads == ["gsplatam-mapping"] and not children for threads, children in seen)
+    assert not [t for t in threading.enumerate() if t.name == "gsplatam-mapping"]  # ended with the run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["raises", "hangs"])
+def test_a_failing_mapping_thread_leaves_a_complete_resumable_run(
+    replica_seq: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    how: str,
+) -> None:
+    """Mapping's third frame raises, or hangs past slam.backend_timeout_s (a thread cannot be
+    killed: it is left behind): one line naming the mapping thread, exit code 1, every frame
+    tracked so far saved with the last complete map; --resume finishes the run."""
+    original = MappingBackend.map
+    calls: list[int] = []
+    release = threading.Event()
+
+    def failing_map(self: MappingBackend, tracked: Any, is_last: bool = False) -> Any:
+        calls.append(tracked.frame.index)
+        if len(calls) == 3:
+            if how == "hangs":
+                release.wait(60)  # no sign of life meanwhile
+            raise RuntimeError("mapping broke")
+        return original(self, tracked, is_last)
+
+    monkeypatch.setattr(MappingBackend, "map", failing_map)
+    try:
+        code = main(_run_argv(replica_seq, tmp_path, ["mapping.rate=frame", "slam.backend_timeout_s=2"]))
+    finally:
+        release.set()  # the thread left behind ends
+    assert code == 1
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    why = "failed: RuntimeError: mapping broke" if how == "raises" else "has shown no sign of life"
+    assert f"the mapping thread {why}" in error
+    folder = tmp_path / "r"
+    saved, _ = read_checkpoint(folder / "checkpoint.safetensors")
+    assert 2 <= saved.frames_done and saved.mapping.frames_seen <= saved.frames_done
+    assert _saved_rows(folder) == list(range(saved.frames_done))
+
+    monkeypatch.setattr(MappingBackend, "map", original)
+    assert main(["run", "--resume", str(folder), "--quiet", "--device", "cpu"]) == 0
+    resumed = json.loads((folder / "metrics.json").read_text())
+    assert resumed["frames"] == 6 and resumed["stopped"] is None and resumed["schedule"] == "thread"
+    assert _saved_rows(folder) == list(range(6))
