@@ -3,14 +3,18 @@
 The align tracker's solve is ~100 small kernels whose launch costs more host time than their
 GPU time; replaying a recorded graph launches them all at once. Inputs are copied into the
 graph's own buffers and the outputs cloned out, so a replay never overwrites what a caller holds.
-Recording runs in `thread_local` capture mode, so the mapping thread may keep working (and
-synchronising) meanwhile. Anything that cannot be recorded (a host read inside, an old driver)
+Recording runs in `thread_local` capture mode, so other threads (the upload's side-stream
+copies) may keep working meanwhile; but a wait for the whole device waits on the stream under
+capture too, which fails and spoils the recording, so recordings and such waits
+(`synchronize_device`) take one lock (`DEVICE_WIDE`): under `slam.schedule=thread` both sides
+record graphs and wait. Anything that cannot be recorded (a host read inside, an old driver)
 makes it fall back to plain calls, said once in the log.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
@@ -22,6 +26,16 @@ log = logging.getLogger("gsplatam")
 
 T = TypeVar("T")
 WARMUP_CALLS = 3  # before recording, on a side stream (compiled code settles, the allocator fills)
+# Held while a graph is recorded and around every wait for the whole device (torch.cuda.graph's own
+# at its start among them): such a wait fails while another thread's stream is under capture
+# ("operation not permitted when stream is capturing", measured at 055e532), and the capture with it.
+DEVICE_WIDE = threading.RLock()
+
+
+def synchronize_device(device: torch.device | None = None) -> None:
+    """torch.cuda.synchronize, never while another thread records a graph."""
+    with DEVICE_WIDE:
+        torch.cuda.synchronize(device)
 
 
 @dataclass
@@ -66,13 +80,14 @@ def record(fn: Callable[[], T], warmup: int = WARMUP_CALLS) -> tuple[torch.cuda.
     recording's output, whose memory each replay rewrites). The warm-up calls run for real (an
     optimiser step moves its parameters). Recording is `thread_local`: other threads of the
     process (the upload's side-stream copies) go on meanwhile, which the global mode refuses."""
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(warmup):
-            fn()
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-        output = fn()
+    with DEVICE_WIDE:  # (the warm-up calls too: torch.cuda.graph's start waits for the device)
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                fn()
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+            output = fn()
     return graph, output

@@ -21,11 +21,11 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 from pipeline.frame import DeviceFrame
+from pipeline.slam.cuda_graphs import synchronize_device
 from pipeline.slam.handoff import FrameResult
 from pipeline.slam.view import SlamView
 
@@ -170,7 +170,7 @@ class KernelSampler:
         self.timer.start()
 
     def _stop(self) -> None:
-        torch.cuda.synchronize()
+        synchronize_device()
         self.timer.stop()
         self.elsewhere("stop")
 

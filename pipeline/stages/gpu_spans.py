@@ -7,6 +7,8 @@ from contextlib import contextmanager
 
 import torch
 
+from pipeline.slam.cuda_graphs import synchronize_device
+
 
 class GpuSpans:
     """Events recorded on the current stream around each frame; read only after the run."""
@@ -31,5 +33,5 @@ class GpuSpans:
         """Idle time on the stream between consecutive frames, milliseconds."""
         if not self._events:
             return []
-        torch.cuda.synchronize()
+        synchronize_device()
         return [prev_end.elapsed_time(start) for (_, prev_end), (start, _) in zip(self._events, self._events[1:])]

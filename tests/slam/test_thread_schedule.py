@@ -12,6 +12,7 @@ import pytest
 
 from pipeline.app.cli import main
 from pipeline.io.outputs.checkpoint import read_checkpoint
+from pipeline.slam import cuda_graphs
 from pipeline.slam.mapping.backend import MappingBackend
 from pipeline.slam.process.mapping_thread import ThreadLock
 from pipeline.stages.sinks import ResultSink
@@ -36,6 +37,31 @@ def test_the_lock_takes_multiprocessing_timeouts() -> None:
     lock.release()
     with lock:
         assert not lock.acquire(block=False)
+
+
+def test_a_device_wide_wait_never_overlaps_another_threads_recording(monkeypatch: pytest.MonkeyPatch) -> None:
+    """While one thread records a graph (holds DEVICE_WIDE), another's wait for the device waits
+    for the recording to end: waiting on a stream under capture would spoil it."""
+    events: list[str] = []
+    monkeypatch.setattr(cuda_graphs.torch.cuda, "synchronize", lambda device=None: events.append("synchronized"))
+    recording, waiting = threading.Event(), threading.Event()
+
+    def record() -> None:
+        with cuda_graphs.DEVICE_WIDE:
+            recording.set()
+            waiting.wait(5)
+            events.append("recorded")
+
+    recorder = threading.Thread(target=record)
+    recorder.start()
+    recording.wait(5)
+    waiter = threading.Thread(target=cuda_graphs.synchronize_device)
+    waiter.start()
+    waiter.join(0.2)  # the waiter is blocked on the lock meanwhile
+    waiting.set()
+    recorder.join(5)
+    waiter.join(5)
+    assert events == ["recorded", "synchronized"]
 
 
 @pytest.mark.slow

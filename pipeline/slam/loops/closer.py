@@ -29,6 +29,7 @@ import torch
 
 from pipeline.config import LoopConfig, TrackingConfig
 from pipeline.render.types import Gaussians
+from pipeline.slam.cuda_graphs import synchronize_device
 from pipeline.slam.keyframes import Keyframe, sample_valid_pixels
 from pipeline.slam.loops.detection import ClosedLoop, LoopDetection, closed_loop_line
 from pipeline.slam.loops.map_correction import corrections, move_map
@@ -58,7 +59,7 @@ def queued_work_done(device: torch.device) -> float:
     if device.type != "cuda":
         return 0.0
     started = time.perf_counter()
-    torch.cuda.synchronize(device)
+    synchronize_device(device)
     return time.perf_counter() - started
 
 
@@ -189,7 +190,7 @@ class LoopCloser:
         if correction is None:
             return ()
         if device.type == "cuda":
-            torch.cuda.synchronize(device)  # once per loop closed: its times are the GPU's too
+            synchronize_device(device)  # once per loop closed: its times are the GPU's too
         closed = self.published(correction)
         log.info(closed_loop_line(closed))  # a mapping process configures no logging: its client logs the report
         return (closed,)

@@ -26,7 +26,7 @@ from typing import Any
 import torch
 import torch.multiprocessing as mp
 
-from pipeline.config import Config
+from pipeline.config import Config, switched_on
 from pipeline.errors import MappingProcessFailed
 from pipeline.frame import DeviceFrame
 from pipeline.processes import signals_blocked
@@ -35,7 +35,7 @@ from pipeline.slam.map_version import MapVersion
 from pipeline.slam.process import messages as m
 from pipeline.slam.process.frame_ring import FrameRing, RingBookkeeping
 from pipeline.slam.process.mapping_process import MappingSetup, run_mapping_process
-from pipeline.slam.process.mapping_thread import ThreadContext
+from pipeline.slam.process.mapping_thread import ThreadContext, import_the_compiler
 from pipeline.slam.process.shared_map import (
     NEWEST_SLOT,
     VERSION,
@@ -63,6 +63,8 @@ class MappingProcess:
         self.in_thread = config.slam.schedule == "thread"
         self.side = "the mapping thread" if self.in_thread else "the mapping process"  # in what it reports
         context: Any = ThreadContext() if self.in_thread else mp.get_context("spawn")
+        if self.in_thread:
+            import_the_compiler(switched_on(config.run.compile, device.type == "cuda"))
         self.config = config
         self.device = device
         self.live = live

@@ -28,6 +28,7 @@ from pipeline.config import Config
 from pipeline.frame import DeviceFrame
 from pipeline.processes import STOP_SIGNALS, end_with_the_parent
 from pipeline.render import make_renderer
+from pipeline.slam.cuda_graphs import synchronize_device
 from pipeline.slam.handoff import TrackedFrame
 from pipeline.slam.kernel_time import KernelTimer
 from pipeline.slam.mapping.backend import BackendSettings, MappingBackend
@@ -184,7 +185,7 @@ class MappingLoop:
             if step == "start":
                 self.kernel_timer.start()
             elif step == "stop":
-                torch.cuda.synchronize()
+                synchronize_device()
                 self.kernel_timer.stop()
         except (RuntimeError, AssertionError):
             self.kernel_timer = KernelTimer()

@@ -18,10 +18,21 @@ them as they order two processes.
 
 from __future__ import annotations
 
+import importlib
 import queue
 import threading
 from collections.abc import Callable
 from typing import Any
+
+
+def import_the_compiler(compiled: bool) -> None:
+    """torch.compile's modules imported in this thread before the mapping thread starts. Both
+    sides import them lazily at their first compile, and two threads importing torch's compiler
+    at once deadlock on its module locks or meet a module half imported (both measured on the
+    H200 at 055e532); imported, dynamo's own lock serialises the compiles that follow."""
+    importlib.import_module("torch._dynamo")  # torch.optim's first optimiser imports it too
+    if compiled:
+        importlib.import_module("torch._inductor.compile_fx")
 
 
 class MappingThread(threading.Thread):
