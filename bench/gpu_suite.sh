@@ -143,6 +143,12 @@ run_part() {
     warm-start-thread)  # issue 34: the thread schedule's start against the process schedule's and one thread's (no dataset)
               bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_thread_tiny \
                 --variants sequential-keyframe,process,thread ;;
+    thread-smoke)  # the thread schedule's captures beside tracking's, uncompiled (no compile time: a short call)
+              python3 -m pipeline run --preset tiny --quiet --output /tmp/smoke --name thread --overwrite \
+                --set slam.schedule=thread --set run.compile=off --set synthetic.width=320 --set synthetic.height=240 \
+                --set synthetic.frames=40 2>&1 | tail -n 4
+              python3 -c "import json; m = json.load(open('/tmp/smoke/thread/metrics.json')); print({k: m.get(k) for k in ('schedule', 'frames', 'fps', 'stopped')}, m['ate']['rmse_cm'], m['mapping_process']['frames_mapped'])" \
+                | tee "$out/thread_smoke.txt" ;;
     pace-thread) bench synthetic-tum --presets tiny,small --variants sequential,process,thread --stem pace_thread ;;  # 200 frames
     odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
               bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \
