@@ -149,6 +149,11 @@ run_part() {
                 --set synthetic.frames=40 2>&1 | tail -n 4
               python3 -c "import json; m = json.load(open('/tmp/smoke/thread/metrics.json')); print({k: m.get(k) for k in ('schedule', 'frames', 'fps', 'stopped')}, m['ate']['rmse_cm'], m['mapping_process']['frames_mapped'])" \
                 | tee "$out/thread_smoke.txt" ;;
+    warm-start-grid)  # issue 34: the grid's batched iteration compiled or not: a warm start's compiles against large steps' tracking
+              bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_grid_tiny \
+                --variants sequential-keyframe,sequential-keyframe-grid-eager
+              bench "$cabinet" --presets tiny --variants sequential-odometry,sequential-odometry-grid-eager \
+                --set dataset.width=640 --set dataset.height=480 --stem grid_eager_cabinet ;;
     pace-thread) bench synthetic-tum --presets tiny,small --variants sequential,process,thread --stem pace_thread ;;  # 200 frames
     odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
               bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \

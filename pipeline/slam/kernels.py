@@ -61,19 +61,23 @@ class SlamKernels:
     align: AlignKernels  # the align tracker's Levenberg-Marquardt iteration (per level), one start and a batch
 
 
-def make_kernels(compiled: bool) -> SlamKernels:
+def make_kernels(compiled: bool, compile_grid: bool = True) -> SlamKernels:
     """The kernels, compiled or not; compiled ones are cached in the user's cache folder
     (`compile_cache`), so that the next run on this machine does not compile them again. The
     align iteration compiles once per pyramid level's size: compiled for any size (one graph) it
-    ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome)."""
+    ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome).
+    `compile_grid` False leaves the grid's batched iteration uncompiled: tracing it under vmap is
+    most of a warm start's compile time (bench/NOTES.md, Change 35)."""
     if not compiled:
         return SlamKernels(tracking_loss, mapping_loss, EAGER_ALIGN)
     cuda = torch.cuda.is_available()
     persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
+    batch = batched(lm_iteration)
+    batch = torch.compile(batch, dynamic=False) if compile_grid else batch
     return SlamKernels(
         torch.compile(tracking_loss, dynamic=False),
         torch.compile(mapping_loss, dynamic=False),
-        AlignKernels(torch.compile(lm_iteration, dynamic=False), torch.compile(batched(lm_iteration), dynamic=False)),
+        AlignKernels(torch.compile(lm_iteration, dynamic=False), batch),
     )
 
 

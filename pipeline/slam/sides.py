@@ -7,7 +7,7 @@ import torch
 
 from pipeline.config import Config, switched_on
 from pipeline.render import Renderer, make_capacity_renderer, make_views_renderer
-from pipeline.slam.kernels import make_kernels
+from pipeline.slam.kernels import SlamKernels, make_kernels
 from pipeline.slam.loops.closer import LoopCloser, NoLoopCloser
 from pipeline.slam.mapping.backend import BackendSettings
 from pipeline.slam.mapping.captured import CapturedMapping
@@ -15,10 +15,15 @@ from pipeline.slam.mapping.window import MapSettings
 from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
 
 
+def kernels_for(config: Config, device: torch.device) -> SlamKernels:
+    """SLAM's kernels, compiled when `run.compile` says so (the grid's: and `run.compile_grid`)."""
+    return make_kernels(switched_on(config.run.compile, device.type == "cuda"), config.run.compile_grid)
+
+
 def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tracker:
     """The configured tracker, its kernels compiled when `run.compile` says so."""
     cuda = device.type == "cuda"
-    kernels = make_kernels(switched_on(config.run.compile, cuda))
+    kernels = kernels_for(config, device)
     near, far = config.render.near, config.render.far
     capacity_renderer = make_capacity_renderer(config.render, config.gaussians, device)
     return make_tracker(
@@ -31,7 +36,7 @@ def backend_settings(config: Config, renderer: Renderer, device: torch.device) -
     kernels, the graphed passes where `mapping.graph` asks for them and a fixed-capacity
     renderer exists, and its config sections."""
     cuda = device.type == "cuda"
-    kernels = make_kernels(switched_on(config.run.compile, cuda))
+    kernels = kernels_for(config, device)
     views = make_views_renderer(config.render, config.gaussians, device)
     near, far = config.render.near, config.render.far
     capacity_renderer = make_capacity_renderer(config.render, config.gaussians, device)

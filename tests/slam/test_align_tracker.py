@@ -18,6 +18,7 @@ from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.metrics import absolute_trajectory_error
 from pipeline.render import Camera, Gaussians, RenderOutput, make_capacity_renderer, make_renderer
 from pipeline.slam.gaussian_map import seed_gaussians
+from pipeline.slam.sides import kernels_for
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.tracking.align_tracker import (
     AlignTracker,
@@ -411,3 +412,19 @@ def test_a_grid_of_starts_holds_the_prediction_first_and_moves_the_camera_in_its
     assert starts.shape == (9, 4, 4) and torch.equal(starts[0], relative)
     moves = {tuple(round(float(v), 6) for v in (invert_pose(relative) @ s)[:3, 3]) for s in starts}
     assert moves == {(x, 0.0, z) for x in (-0.15, 0.0, 0.15) for z in (-0.15, 0.0, 0.15)}
+
+
+def test_the_grids_iteration_is_left_uncompiled_when_asked() -> None:
+    """`run.compile_grid=false`: the one-start iteration compiled, the grid's batched one not
+    (made, never called: no compile happens here)."""
+
+    def compiled(fn: object) -> bool:
+        return hasattr(fn, "_torchdynamo_orig_callable")
+
+    for grid in (True, False):
+        config = load_config("tiny", overrides=["run.compile=on", f"run.compile_grid={str(grid).lower()}"])
+        kernels = kernels_for(config, torch.device("cpu"))
+        assert compiled(kernels.align.one) and compiled(kernels.align.batch) == grid
+    assert not compiled(
+        kernels_for(load_config("tiny", overrides=["run.compile=off"]), torch.device("cpu")).align.batch
+    )
