@@ -250,12 +250,13 @@ def test_kernel_busy_time_is_the_union_of_the_intervals() -> None:
 
 
 @pytest.mark.slow
-def test_the_tracker_warms_up_while_the_mapping_process_maps_the_first_frame(replica_seq: Path) -> None:
+@pytest.mark.parametrize("schedule", ["process", "thread"])
+def test_the_tracker_warms_up_while_the_mapping_process_maps_the_first_frame(replica_seq: Path, schedule: str) -> None:
     """On the first frame the tracker is called once more, after the frame went to mapping and
     against a map seeded from that frame alone (one Gaussian per valid pixel), its result
-    dropped; the run's start is reported in parts."""
+    dropped; the run's start is reported in parts. The same with the mapping side in a thread."""
     frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:2]
-    slam = _process_slam(["mapping.rate=frame", "mapping.refine_while_idle=false"])
+    slam = _process_slam(["mapping.rate=frame", "mapping.refine_while_idle=false", f"slam.schedule={schedule}"])
     slam.warms_tracker = True  # as on CUDA
     track = slam.frontend.tracker
     calls: list[tuple[list[int], int]] = []
@@ -280,11 +281,12 @@ def test_the_tracker_warms_up_while_the_mapping_process_maps_the_first_frame(rep
         slam.close()
 
 
-def test_a_warm_up_leaves_no_map_behind_and_the_run_starts_afresh(replica_seq: Path) -> None:
+@pytest.mark.parametrize("schedule", ["process", "thread"])
+def test_a_warm_up_leaves_no_map_behind_and_the_run_starts_afresh(replica_seq: Path, schedule: str) -> None:
     """After a live warm-up on a frame, nothing is published for the session (a stop at once has
     nothing to save); the next frames start a map at the identity."""
     frames = [host_frame_tensors(f) for f in open_dataset(DatasetConfig(path=str(replica_seq))).frames()][:3]
-    slam = _process_slam([], live=True)
+    slam = _process_slam([f"slam.schedule={schedule}"], live=True)
     try:
         slam.warm_up(frames[0])
         assert slam.frames_done == 0 and slam.gaussians is None
