@@ -2,8 +2,7 @@
 
 The same mapping loop as the process schedule's (mapping_process.py), the same messages, map
 slots and frame ring, but started as a thread: no second interpreter, no second import of torch
-and gsplat, no second CUDA context, and the kernels torch.compile made for one side serve the
-other. Measured on the H200 (bench/NOTES.md, Change 34) that start-up was most of the process
+and gsplat, no second CUDA context, the compiler imported once. Measured on the H200 (bench/NOTES.md, Change 34) that start-up was most of the process
 schedule's warm-up. What it costs: the two sides share the GIL, so the mapping side's host work
 (densification, the loop search) runs between tracking's; the replayed CUDA graphs of both need
 little of it.
