@@ -9,12 +9,16 @@ host overhead (~0.4 ms forward on the H200, `bench/results/iteration_costs*.json
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ParamSpec, TypeVar
 
 import torch
+import torch._functorch.config as functorch_config
 
 from pipeline.compile_cache import persist_compile_cache
+from pipeline.slam.cuda_graphs import DEVICE_WIDE
 from pipeline.slam.losses import ssim
 from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, batched, lm_iteration
 
@@ -54,6 +58,35 @@ def mapping_loss(
     return depth_weight * depth_l1 + color_weight * color_term
 
 
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def one_thread_at_a_time(compiled: Callable[P, R]) -> Callable[P, R]:
+    """A compiled function called under the device-wide lock (`cuda_graphs.DEVICE_WIDE`). A
+    compile traces with FX, which sets a process-wide flag under which every other thread's call
+    of a compiled function fails ("using FX to symbolically trace a dynamo-optimized function":
+    the mapping thread under `slam.schedule=thread`, measured on the H200 at 6a71ace). Dynamo's
+    own lock serialises compiles, not calls. Uncontended (one side per process), the lock costs
+    under a microsecond a call; replayed CUDA graphs do not call these at all."""
+
+    @functools.wraps(compiled)
+    def call(*args: P.args, **kwargs: P.kwargs) -> R:
+        with DEVICE_WIDE:
+            return compiled(*args, **kwargs)
+
+    return call
+
+
+def compile_whole(fn: Callable[P, R]) -> Callable[P, R]:
+    """torch.compile for fixed shapes, its backward compiled with its forward (in the first call,
+    under the lock) rather than lazily at the first backward, outside it, where its FX tracing
+    would fail the other side's compiled calls."""
+    if hasattr(functorch_config, "force_non_lazy_backward_lowering"):  # (not in every torch release)
+        functorch_config.force_non_lazy_backward_lowering = True
+    return one_thread_at_a_time(torch.compile(fn, dynamic=False))
+
+
 @dataclass(frozen=True)
 class SlamKernels:
     tracking_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
@@ -73,11 +106,10 @@ def make_kernels(compiled: bool, compile_grid: bool = True) -> SlamKernels:
     cuda = torch.cuda.is_available()
     persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
     batch = batched(lm_iteration)
-    batch = torch.compile(batch, dynamic=False) if compile_grid else batch
     return SlamKernels(
-        torch.compile(tracking_loss, dynamic=False),
-        torch.compile(mapping_loss, dynamic=False),
-        AlignKernels(torch.compile(lm_iteration, dynamic=False), batch),
+        compile_whole(tracking_loss),
+        compile_whole(mapping_loss),
+        AlignKernels(compile_whole(lm_iteration), compile_whole(batch) if compile_grid else batch),
     )
 
 
