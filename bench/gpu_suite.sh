@@ -154,6 +154,11 @@ run_part() {
                 --variants sequential-keyframe,sequential-keyframe-grid-eager
               bench "$cabinet" --presets tiny --variants sequential-odometry,sequential-odometry-grid-eager \
                 --set dataset.width=640 --set dataset.height=480 --stem grid_eager_cabinet ;;
+    warm-start-precompile)  # issue 34: the align iterations as AOTInductor packages: repeat 0 builds them, repeat 1 loads them
+              bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_precompile_tiny \
+                --variants sequential-keyframe,sequential-keyframe-precompiled,process-precompiled
+              bench "$cabinet" --presets tiny --variants sequential-odometry,sequential-odometry-precompiled \
+                --set dataset.width=640 --set dataset.height=480 --stem precompile_cabinet ;;
     pace-thread) bench synthetic-tum --presets tiny,small --variants sequential,process,thread --stem pace_thread ;;  # 200 frames
     odometry-slow)  # the slow TUM sample and the generator's fast loops, where odometry must not hurt
               bench "$tum" synthetic-fast-loops --presets tiny --variants process,process-odometry,sequential,sequential-odometry \

@@ -44,6 +44,9 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "sequential-keyframe-grid-eager": ("slam.schedule=sequential", "mapping.rate=keyframe", "run.compile_grid=false"),
     "sequential-odometry-grid-eager": ("slam.schedule=sequential", "tracking.odometry=features", "run.compile_grid=false"),
     "process-grid-eager": ("slam.schedule=process", "run.compile_grid=false"),  # the grid's iteration uncompiled
+    "sequential-keyframe-precompiled": ("slam.schedule=sequential", "mapping.rate=keyframe", "run.precompile=true"),
+    "process-precompiled": ("slam.schedule=process", "run.precompile=true"),  # align iterations as AOTInductor packages
+    "sequential-odometry-precompiled": ("slam.schedule=sequential", "tracking.odometry=features", "run.precompile=true"),
     "sequential-keyframe-refine": ("slam.schedule=sequential", "mapping.rate=keyframe", "mapping.refine_between=1"),
     "process-no-compile": ("slam.schedule=process", "run.compile=off"),  # graphs of eager kernels: no dynamo at start
     "process-eager-render": ("slam.schedule=process", "tracking.align_fixed_capacity=off"),  # gsplat's own tracking render

@@ -255,6 +255,7 @@ class RunConfig:
     loader: LoaderKind = "pipelined"  # asyncio pipeline, or sync: read, decode and process one frame at a time
     compile: Switch = "auto"  # torch.compile the per-iteration loss and pose functions (auto: on CUDA)
     compile_grid: bool = True  # with compile: the align grid's nine-start iteration compiled too (false: replayed uncompiled in its CUDA graph; its compiles were 6.5 of a warm start's 11 s on the CPU)
+    precompile: bool = False  # with compile: the align iterations built once as AOTInductor packages (the cache folder) and loaded without tracing in later runs
     queue_size: int = 4  # frames each pipeline queue holds
     seed: int = 0  # seeds mapping's keyframe picks and pixel sampling
     save_every_s: float = 60.0  # map, trajectory and checkpoint written this often while running (and at the end)

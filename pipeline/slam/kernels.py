@@ -17,10 +17,11 @@ from typing import ParamSpec, TypeVar
 import torch
 import torch._functorch.config as functorch_config
 
-from pipeline.compile_cache import persist_compile_cache
+from pipeline.compile_cache import compile_cache_folder, persist_compile_cache
 from pipeline.slam.cuda_graphs import DEVICE_WIDE
 from pipeline.slam.losses import ssim
-from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignKernels, batched, lm_iteration
+from pipeline.slam.precompiled import Precompiled
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignIteration, AlignKernels, batched, lm_iteration
 
 
 def tracking_loss(
@@ -94,23 +95,27 @@ class SlamKernels:
     align: AlignKernels  # the align tracker's Levenberg-Marquardt iteration (per level), one start and a batch
 
 
-def make_kernels(compiled: bool, compile_grid: bool = True) -> SlamKernels:
+def make_kernels(compiled: bool, compile_grid: bool = True, precompile: bool = False) -> SlamKernels:
     """The kernels, compiled or not; compiled ones are cached in the user's cache folder
     (`compile_cache`), so that the next run on this machine does not compile them again. The
     align iteration compiles once per pyramid level's size: compiled for any size (one graph) it
     ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome).
     `compile_grid` False leaves the grid's batched iteration uncompiled: tracing it under vmap is
-    most of a warm start's compile time (bench/NOTES.md, Change 35)."""
+    most of a warm start's compile time (bench/NOTES.md, Change 35). `precompile` makes the
+    compiled align iterations AOTInductor packages, loaded in later runs without tracing
+    (`precompiled.py`, Change 36)."""
     if not compiled:
         return SlamKernels(tracking_loss, mapping_loss, EAGER_ALIGN)
-    cuda = torch.cuda.is_available()
-    persist_compile_cache(torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu"))
+    device = torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
+    persist_compile_cache(device)
     batch = batched(lm_iteration)
-    return SlamKernels(
-        compile_whole(tracking_loss),
-        compile_whole(mapping_loss),
-        AlignKernels(compile_whole(lm_iteration), compile_whole(batch) if compile_grid else batch),
-    )
+    one: AlignIteration = compile_whole(lm_iteration)
+    grid: AlignIteration = compile_whole(batch) if compile_grid else batch
+    if precompile:
+        folder = compile_cache_folder(device, "aoti")
+        one = Precompiled(lm_iteration, "lm_iteration", folder, fallback=one)
+        grid = Precompiled(batch, "lm_iteration_batched", folder, fallback=grid) if compile_grid else grid
+    return SlamKernels(compile_whole(tracking_loss), compile_whole(mapping_loss), AlignKernels(one, grid))
 
 
 EAGER = make_kernels(compiled=False)

@@ -16,8 +16,10 @@ from pipeline.slam.tracking.trackers import Tracker, TrackSettings, make_tracker
 
 
 def kernels_for(config: Config, device: torch.device) -> SlamKernels:
-    """SLAM's kernels, compiled when `run.compile` says so (the grid's: and `run.compile_grid`)."""
-    return make_kernels(switched_on(config.run.compile, device.type == "cuda"), config.run.compile_grid)
+    """SLAM's kernels, compiled when `run.compile` says so (the grid's: and `run.compile_grid`;
+    the align iterations ahead of time: and `run.precompile`)."""
+    compiled = switched_on(config.run.compile, device.type == "cuda")
+    return make_kernels(compiled, config.run.compile_grid, config.run.precompile)
 
 
 def tracker_for(config: Config, renderer: Renderer, device: torch.device) -> Tracker:

@@ -68,6 +68,7 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(
     variants = {"eager": (EAGER, False), "graphed": (EAGER, True)}
     variants["compiled and graphed"] = (make_kernels(compiled=True), True)  # as the presets run on CUDA
     variants["compiled, the grid's iteration not, graphed"] = (make_kernels(True, compile_grid=False), True)
+    variants["precompiled (AOTInductor) and graphed"] = (make_kernels(True, precompile=True), True)
     results = {}
     for name, (kernels, capture) in variants.items():
         near, far = config.render.near, config.render.far
@@ -75,6 +76,7 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(
         for _ in range(2):  # a graph is recorded on the first call and replayed on the second
             results[name] = tracker(None, frame, init, wide=wide)  # type: ignore[arg-type]
     assert "could not be recorded" not in caplog.text  # replayed, not run uncaptured after a failed recording
+    assert "could not be compiled ahead of time" not in caplog.text  # the packages ran, not their fallback
     eager = results["eager"]
     assert eager.failure == ""
     assert float(torch.linalg.norm(eager.c2w[:3, 3].double().cpu() - torch.from_numpy(truth[:3, 3]))) < 0.005

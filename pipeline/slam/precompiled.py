@@ -1,0 +1,148 @@
+"""The align iterations compiled ahead of time (AOTInductor packages), loaded without tracing.
+
+torch.compile traces each function again in every process, its on-disk caches warm or not: on
+the CPU 1-2.5 s a graph, once per pyramid level, and 7-9 s of the H200's 9-11 s warm-up
+(bench/NOTES.md, Change 36). A package made once by torch.export and AOTInductor is a shared
+library that a later process loads in ~10 ms (the CPU). Packages are kept in the user's cache
+folder, one per function, input signature, constant arguments, source and build
+(`package_key`); a missing one is built (export and compile: longer than torch.compile's first
+compile) and written whole or not at all. An exported program is inference-only, so only
+functions that need no gradient are made so: the align iterations (Gauss-Newton steps).
+
+A function whose export or build fails runs its `fallback` instead (torch.compile'd), said once
+in the log.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import logging
+import os
+import sys
+import types
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import torch
+from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
+
+from pipeline.slam.cuda_graphs import DEVICE_WIDE
+
+log = logging.getLogger("gsplatam")
+
+State = TypeVar("State")
+PACKAGE = "pipeline"  # modules of this package count in a function's source digest
+
+
+def source_modules(fn: Callable[..., Any]) -> dict[str, types.ModuleType]:
+    """`fn`'s module and every module of this package it reaches through module globals (the
+    functions and classes it imports, theirs in turn), by name."""
+    root = inspect.getmodule(inspect.unwrap(fn))
+    seen: dict[str, types.ModuleType] = {}
+    todo = [root] if root is not None else []
+    while todo:
+        module = todo.pop()
+        if module.__name__ in seen:
+            continue
+        seen[module.__name__] = module
+        for value in vars(module).values():
+            owner = value if inspect.ismodule(value) else inspect.getmodule(value)
+            if owner is not None and owner.__name__.split(".")[0] == PACKAGE and owner.__name__ not in seen:
+                todo.append(owner)
+    return seen
+
+
+def source_digest(fn: Callable[..., Any]) -> str:
+    """sha256 of the source files of `source_modules(fn)`: a package built from other code is
+    never loaded."""
+    digest = hashlib.sha256()
+    for name, module in sorted(source_modules(fn).items()):
+        digest.update(name.encode())
+        digest.update(Path(module.__file__ or "").read_bytes())
+    return digest.hexdigest()
+
+
+def package_key(name: str, source: str, leaves: Sequence[Any], spec: TreeSpec) -> str:
+    """What a package depends on besides the build (the cache folder's name holds torch, CUDA and
+    the device): the function's name and source digest, the arguments' structure, each tensor's
+    shape, dtype and device, and every other argument's value (baked into the package)."""
+    parts = [name, source, str(spec), sys.version.split()[0]]
+    for leaf in leaves:
+        if isinstance(leaf, torch.Tensor):
+            parts.append(f"{tuple(leaf.shape)}:{leaf.dtype}:{leaf.device.type}:{tuple(leaf.stride())}")
+        else:
+            parts.append(repr(leaf))
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
+
+
+class _FlatCall(torch.nn.Module):
+    """`fn` over flat tensors: the export's input and output are tensors only (a package keeps
+    no Python structure); the other arguments are constants of the program."""
+
+    def __init__(self, fn: Callable[..., Any], leaves: Sequence[Any], spec: TreeSpec) -> None:
+        super().__init__()
+        self.fn, self.leaves, self.spec = fn, list(leaves), spec
+        self.state_spec: TreeSpec | None = None
+
+    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        given = iter(tensors)
+        leaves = [next(given) if isinstance(leaf, torch.Tensor) else leaf for leaf in self.leaves]
+        args = tree_unflatten(leaves, self.spec)
+        out, out_spec = tree_flatten(self.fn(*args))
+        if out_spec != tree_flatten(args[0])[1]:
+            raise TypeError(f"{self.fn} returns a structure other than its first argument's")
+        return tuple(out)
+
+
+class Precompiled(Generic[State]):
+    """`fn(state, *inputs) -> state` (tensors in pytrees, other arguments constants) from its
+    AOTInductor package in `folder`, built where missing; `built` counts the packages this
+    instance built, `loaded` those it found."""
+
+    def __init__(self, fn: Callable[..., State], name: str, folder: Path, fallback: Callable[..., State]) -> None:
+        self.fn, self.name, self.folder, self.fallback = fn, name, folder, fallback
+        self.source = source_digest(fn)
+        self.built = self.loaded = 0
+        self.failed = False
+        self._runners: dict[str, Callable[..., Sequence[torch.Tensor]]] = {}
+
+    def __call__(self, *args: Any) -> State:
+        if self.failed:
+            return self.fallback(*args)
+        leaves, spec = tree_flatten(args)
+        key = package_key(self.name, self.source, leaves, spec)
+        runner = self._runners.get(key)
+        if runner is None:
+            try:
+                with DEVICE_WIDE:  # an export traces with FX: never beside another thread's compiled call
+                    runner = self._runners[key] = self._runner(key, leaves, spec)
+            except Exception as exc:  # an operation export or AOTInductor refuses: compiled as before
+                self.failed = True
+                log.warning("%s could not be compiled ahead of time (%s): torch.compile instead", self.name, exc)
+                return self.fallback(*args)
+        tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
+        state: State = tree_unflatten(list(runner(*tensors)), tree_flatten(args[0])[1])
+        return state
+
+    def _runner(self, key: str, leaves: Sequence[Any], spec: TreeSpec) -> Callable[..., Sequence[torch.Tensor]]:
+        from torch._inductor import aoti_compile_and_package, aoti_load_package
+
+        path = self.folder / f"{self.name}-{key}.pt2"
+        tensors = tuple(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))
+        if path.exists():
+            self.loaded += 1
+        else:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            with torch.no_grad():
+                program = torch.export.export(_FlatCall(self.fn, leaves, spec), tensors, strict=False)
+                partial = path.with_name(f".{path.stem}.{os.getpid()}.partial.pt2")  # (it must end .pt2)
+                aoti_compile_and_package(program, package_path=str(partial))
+            os.replace(partial, path)  # whole or not at all: a run stopped mid-build leaves no package
+            self.built += 1
+        device = next((t.device for t in tensors if t.device.type == "cuda"), None)
+        runner: Callable[..., Sequence[torch.Tensor]] = aoti_load_package(
+            str(path), device_index=device.index if device is not None and device.index is not None else -1
+        )
+        return runner
