@@ -10,7 +10,8 @@ compile) and written whole or not at all. An exported program is inference-only,
 functions that need no gradient are made so: the align iterations (Gauss-Newton steps).
 
 A function whose export or build fails runs its `fallback` instead (torch.compile'd), said once
-in the log.
+in the log. A package is native code, as inductor's own cached kernels are: it is only ever read
+from the user's own cache folder, never from a run folder.
 """
 
 from __future__ import annotations
