@@ -78,6 +78,13 @@ def package_key(name: str, source: str, leaves: Sequence[Any], spec: TreeSpec) -
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
 
 
+def _signature(leaf: Any) -> Any:
+    """What `package_key` reads of an argument, as a hashable value."""
+    if isinstance(leaf, torch.Tensor):
+        return leaf.shape, leaf.dtype, leaf.device, leaf.stride()
+    return leaf
+
+
 class _FlatCall(torch.nn.Module):
     """`fn` over flat tensors: the export's input and output are tensors only (a package keeps
     no Python structure); the other arguments are constants of the program."""
@@ -107,18 +114,19 @@ class Precompiled(Generic[State]):
         self.source = source_digest(fn)
         self.built = self.loaded = 0
         self.failed = False
-        self._runners: dict[str, Callable[..., Sequence[torch.Tensor]]] = {}
+        self._runners: dict[tuple[Any, ...], Callable[..., Sequence[torch.Tensor]]] = {}
 
     def __call__(self, *args: Any) -> State:
         if self.failed:
             return self.fallback(*args)
         leaves, spec = tree_flatten(args)
-        key = package_key(self.name, self.source, leaves, spec)
-        runner = self._runners.get(key)
+        signature = (spec, *(_signature(leaf) for leaf in leaves))  # cheaper than the key, checked each call
+        runner = self._runners.get(signature)
         if runner is None:
+            key = package_key(self.name, self.source, leaves, spec)
             try:
                 with DEVICE_WIDE:  # an export traces with FX: never beside another thread's compiled call
-                    runner = self._runners[key] = self._runner(key, leaves, spec)
+                    runner = self._runners[signature] = self._runner(key, leaves, spec)
             except Exception as exc:  # an operation export or AOTInductor refuses: compiled as before
                 self.failed = True
                 log.warning("%s could not be compiled ahead of time (%s): torch.compile instead", self.name, exc)
