@@ -156,7 +156,8 @@ run_part() {
                 --set dataset.width=640 --set dataset.height=480 --stem grid_eager_cabinet ;;
     warm-start-precompile)  # issue 34: the align iterations as AOTInductor packages: the first precompiled cell builds them, the rest load them
               bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_precompile_tiny \
-                --variants sequential-keyframe,sequential-keyframe-precompiled,process-precompiled ;;
+                --variants sequential-keyframe,sequential-keyframe-precompiled,process-precompiled
+              cp -r .device/cache/gsplatam/aoti "$out/" 2>/dev/null ;;  # the packages built, to carry into later calls
     precompile-cabinet)  # the packages against torch.compile where every frame is a large step (builds the cabinet's own packages)
               bench "$cabinet" --presets tiny --variants sequential-odometry,sequential-odometry-precompiled \
                 --set dataset.width=640 --set dataset.height=480 --stem precompile_cabinet ;;
