@@ -114,25 +114,27 @@ class Precompiled(Generic[State]):
         self.source = source_digest(fn)
         self.built = self.loaded = 0
         self.failed = False
-        self._runners: dict[tuple[Any, ...], Callable[..., Sequence[torch.Tensor]]] = {}
+        # by `_signature`s: the package's runner, and the structure of the state it returns
+        self._runners: dict[tuple[Any, ...], tuple[Callable[..., Sequence[torch.Tensor]], TreeSpec]] = {}
 
     def __call__(self, *args: Any) -> State:
         if self.failed:
             return self.fallback(*args)
         leaves, spec = tree_flatten(args)
         signature = (spec, *(_signature(leaf) for leaf in leaves))  # cheaper than the key, checked each call
-        runner = self._runners.get(signature)
-        if runner is None:
+        found = self._runners.get(signature)
+        if found is None:
             key = package_key(self.name, self.source, leaves, spec)
             try:
                 with DEVICE_WIDE:  # an export traces with FX: never beside another thread's compiled call
-                    runner = self._runners[signature] = self._runner(key, leaves, spec)
+                    found = self._runners[signature] = (self._runner(key, leaves, spec), tree_flatten(args[0])[1])
             except Exception as exc:  # an operation export or AOTInductor refuses: compiled as before
                 self.failed = True
                 log.warning("%s could not be compiled ahead of time (%s): torch.compile instead", self.name, exc)
                 return self.fallback(*args)
+        runner, state_spec = found
         tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
-        state: State = tree_unflatten(list(runner(*tensors)), tree_flatten(args[0])[1])
+        state: State = tree_unflatten(list(runner(*tensors)), state_spec)
         return state
 
     def _runner(self, key: str, leaves: Sequence[Any], spec: TreeSpec) -> Callable[..., Sequence[torch.Tensor]]:

@@ -2,10 +2,12 @@
 
 The same mapping loop as the process schedule's (mapping_process.py), the same messages, map
 slots and frame ring, but started as a thread: no second interpreter, no second import of torch
-and gsplat, no second CUDA context, the compiler imported once. Measured on the H200 (bench/NOTES.md, Change 34) that start-up was most of the process
-schedule's warm-up. What it costs: the two sides share the GIL, so the mapping side's host work
-(densification, the loop search) runs between tracking's; the replayed CUDA graphs of both need
-little of it.
+and gsplat, no second CUDA context, the compiler imported once. Built because that start-up
+looked like most of the process schedule's warm-up; measured on the H200 (bench/NOTES.md,
+outcome at 009c174) it is not: `process` overlaps it with tracking's own warm-up, and both
+schedules reach their third result after 9.0 s on a warm cache. What it costs: the two sides
+share the GIL, so the mapping side's host work (densification, the loop search) runs between
+tracking's (33-53 frames/s steady against `process`'s 50-69). Experimental, not a default.
 
 `ThreadContext` stands in for multiprocessing's spawn context, so that the client and the
 bookkeeping it shares are written once: queues, events, locks and semaphores of `threading`,
