@@ -25,6 +25,9 @@ else
   python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .device/*.whl $(ls .whl-live/*.whl .whl-ray/*.whl .whl-dds/*.whl .whl-loops/*.whl 2>/dev/null) || exit 1
   export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYTHONFAULTHANDLER=1 PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
   export XDG_CACHE_HOME=$PWD/.device/cache  # our CUDA extension built by an earlier call comes carried in .device/
+  # The image's CXX (/opt/gcc/bin/g++, a wrapper of the system's GCC 13.3) links libstdc++ into shared libraries
+  # statically: an AOTInductor package built with it crashes the process that loads it (bench/NOTES.md, Change 36)
+  export CXX=/usr/bin/g++
   export GSPLATAM_COMMIT=${GSPLATAM_COMMIT:?set GSPLATAM_COMMIT to the commit measured, since the git of the device copy is stale}
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
   data=${DATA:-.data}

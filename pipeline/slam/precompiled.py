@@ -10,7 +10,10 @@ compile) and written whole or not at all. An exported program is inference-only,
 functions that need no gradient are made so: the align iterations (Gauss-Newton steps).
 
 A function whose export or build fails runs its `fallback` instead (torch.compile'd), said once
-in the log. A package is native code, as inductor's own cached kernels are: it is only ever read
+in the log. So does one whose new package fails to load in a child process (`trial_load`): a
+package's shared library that does not fit the process's C++ runtime crashes whatever loads it,
+which no `except` can catch (SIGSEGV on the H200 at da7c30a, where the image's `CXX` links
+libstdc++ into the library statically: bench/NOTES.md, Change 36). A package is native code, as inductor's own cached kernels are: it is only ever read
 from the user's own cache folder, never from a run folder.
 """
 
@@ -20,6 +23,8 @@ import hashlib
 import inspect
 import logging
 import os
+import signal
+import subprocess
 import sys
 import types
 from collections.abc import Callable, Sequence
@@ -76,6 +81,19 @@ def package_key(name: str, source: str, leaves: Sequence[Any], spec: TreeSpec) -
         else:
             parts.append(repr(leaf))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
+
+
+TRIAL_LOAD = "import sys; from torch._inductor import aoti_load_package; aoti_load_package(sys.argv[1])"
+
+
+def trial_load(path: Path) -> None:
+    """Load the package at `path` in a child process; RuntimeError, saying how, where it fails."""
+    done = subprocess.run([sys.executable, "-c", TRIAL_LOAD, str(path)], capture_output=True, text=True, check=False)
+    if done.returncode == 0:
+        return
+    how = f"signal {signal.Signals(-done.returncode).name}" if done.returncode < 0 else f"exit {done.returncode}"
+    compiler = f"; built with CXX={os.environ['CXX']}" if "CXX" in os.environ else ""  # (the H200's cause)
+    raise RuntimeError(f"its package could not be loaded in a child process ({how}{compiler})")
 
 
 def _signature(leaf: Any) -> Any:
@@ -149,8 +167,12 @@ class Precompiled(Generic[State]):
             with torch.no_grad():
                 program = torch.export.export(_FlatCall(self.fn, leaves, spec), tensors, strict=False)
                 partial = path.with_name(f".{path.stem}.{os.getpid()}.partial.pt2")  # (it must end .pt2)
-                aoti_compile_and_package(program, package_path=str(partial))
-            os.replace(partial, path)  # whole or not at all: a run stopped mid-build leaves no package
+                try:
+                    aoti_compile_and_package(program, package_path=str(partial))
+                    trial_load(partial)
+                    os.replace(partial, path)  # whole or not at all: a run stopped mid-build leaves no package
+                finally:
+                    partial.unlink(missing_ok=True)
             self.built += 1
         device = next((t.device for t in tensors if t.device.type == "cuda"), None)
         runner: Callable[..., Sequence[torch.Tensor]] = aoti_load_package(

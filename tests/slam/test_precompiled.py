@@ -86,3 +86,33 @@ def test_a_function_export_refuses_runs_its_fallback(tmp_path: Path, caplog: pyt
             assert torch.equal(precompiled(torch.ones(3), torch.ones(3)), torch.zeros(3))
     assert precompiled.failed and caplog.text.count("could not be compiled ahead of time") == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_a_package_that_crashes_its_loader_is_not_kept_and_the_fallback_runs(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A package whose library does not fit the process's C++ runtime kills the process that loads
+    it (SIGSEGV on the H200 at da7c30a): it is loaded in a child first, and a crash there means the
+    fallback, said once with the signal, and no package left to crash a later run."""
+    import torch._inductor
+
+    from pipeline.slam import precompiled as module
+
+    monkeypatch.setattr(
+        torch._inductor,
+        "aoti_compile_and_package",
+        lambda program, package_path: Path(package_path).write_bytes(b"built"),
+    )
+    monkeypatch.setattr(module, "TRIAL_LOAD", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)")
+    monkeypatch.setenv("CXX", "/opt/gcc/bin/g++")
+
+    def double(state: torch.Tensor) -> torch.Tensor:
+        return state * 2
+
+    precompiled = Precompiled(double, "double", tmp_path, fallback=lambda s: s * 3)
+    with caplog.at_level(logging.WARNING, logger="gsplatam"):
+        for _ in range(2):
+            assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
+    assert caplog.text.count("could not be compiled ahead of time") == 1
+    assert "signal SIGSEGV; built with CXX=/opt/gcc/bin/g++" in caplog.text
+    assert not any(tmp_path.iterdir())
