@@ -7,10 +7,14 @@ in for the outside world (frames.csv, the status endpoint, metrics)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from pipeline.frame import DeviceFrame
+
+if TYPE_CHECKING:  # (the tracker's module, not loaded by those that only pass results on)
+    from pipeline.slam.tracking.align_tracker import SolveReport
 
 
 @dataclass
@@ -33,6 +37,9 @@ class FrameResult:
     received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival
     age_at_start_s: float | None = None  # live: seconds from the frame's arrival to the start of its tracking
     age_s: float | None = None  # live: seconds from the frame's arrival to its result (set by the sink)
+    solve: SolveReport | None = (
+        None  # align: the statistics of the solve whose pose was taken (None: adam, the first frame)
+    )
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -143,6 +144,9 @@ def test_run_then_resume_on_a_small_synthetic_sequence(
     assert metrics["frames"] == 6 and metrics["frames_this_run"] == 2
     assert len(read_tum_trajectory(folder / "trajectory.txt")[0]) == 6
     assert len((folder / "frames.csv").read_text().splitlines()) == 1 + 6
+    with open(folder / "frames.csv", newline="") as table:
+        tracked = list(csv.DictReader(table))[1:]  # tiny tracks by alignment; the first frame is not tracked
+    assert all(0 < float(row["inlier_fraction"]) <= 1 and int(row["renders"]) >= 1 for row in tracked)
 
     camera = json.loads((folder / "intrinsics.json").read_text())  # what exports need, from the run itself
     assert (camera["width"], camera["height"]) == (64, 48)

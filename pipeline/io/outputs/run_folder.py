@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import os
 import shutil
@@ -32,7 +33,7 @@ from pipeline.io.outputs.checkpoint import LEGACY_NAME, checkpoint_bytes, read_c
 from pipeline.io.outputs.exports import EXPORTERS
 from pipeline.io.outputs.exports.nerfstudio import WRITTEN as NERFSTUDIO_FILES
 from pipeline.io.outputs.exports_record import ExportsRecord, text_of
-from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.io.outputs.frame_row import COLUMNS, EARLIER_WIDTH, FrameRow
 from pipeline.io.outputs.intrinsics import CameraIntrinsics, read_intrinsics
 from pipeline.io.outputs.ply import gaussian_ply_bytes, write_ply
 from pipeline.io.outputs.run_description import RunDescription
@@ -264,9 +265,11 @@ class RunFolder:
         if not self.frames_csv.exists():
             return
         lines = self.frames_csv.read_text(errors="replace").splitlines(keepends=True)
-        kept = [line for line in lines if line.endswith("\n") and _row_index(line) in range(frames_done)]
+        rows = [row for line in lines if line.endswith("\n") and (row := _row(line)) and int(row[0]) < frames_done]
+        table = io.StringIO()
+        csv.writer(table).writerows([COLUMNS, *rows])
         with _writing(self.frames_csv):
-            atomic_write_text(self.frames_csv, "".join([",".join(COLUMNS) + "\r\n", *kept]))
+            atomic_write_text(self.frames_csv, table.getvalue())
 
     def write_state(
         self, checkpoint: Checkpoint, run: RunDescription, timestamps: np.ndarray, reference: np.ndarray | None
@@ -383,9 +386,10 @@ def pose_graph_text(loops: LoopState) -> str:
     return g2o_text(graph.c2w, edges)
 
 
-def _row_index(line: str) -> int | None:
-    """The frame index of a complete frames.csv line, None for the header or a malformed line."""
+def _row(line: str) -> list[str]:
+    """A frames.csv line's cells in today's columns (one of an earlier layout, without the solve's
+    columns, padded with empty cells); [] for the header or a malformed line."""
     fields = next(csv.reader([line]), [])
-    if len(fields) != len(COLUMNS) or not fields[0].isdigit():
-        return None
-    return int(fields[0])
+    if len(fields) not in (EARLIER_WIDTH, len(COLUMNS)) or not fields[0].isdigit():
+        return []
+    return fields + [""] * (len(COLUMNS) - len(fields))

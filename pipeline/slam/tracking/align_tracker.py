@@ -40,6 +40,7 @@ class AlignResult:
     geometric_sq: torch.Tensor  # [] sum of squared point-to-plane residuals over the inliers, metres^2
     coverage: torch.Tensor  # [] inliers / valid-depth pixels of the frame
     failure: str  # empty when the solve looks sound, else why not
+    report: SolveReport  # the final solve's statistics, on the host
     # The final normal equations [6, 6] float64 at `motion` [4, 4] float64 (this camera -> the
     # render's), for a left perturbation exp(xi) @ motion: a pose-graph edge's information
     # (`pose_graph.alignment_information`). Device tensors, not read back.
@@ -64,6 +65,7 @@ class SolveReport:
     conditioning: float  # smallest / largest eigenvalue of the Jacobi-scaled normal equations
     moved_m: float = 0.0  # how far the solve moved the camera from the pose rendered at, metres
     moved_deg: float = 0.0  # and turned it, degrees
+    renders: int = 1  # renders of the map the frame took to reach this solve (`AlignTracker`)
 
     def large(self, config: TrackingConfig) -> bool:
         """Whether the solve moved the camera far from the render's pose (`is_large_step`)."""
@@ -234,7 +236,7 @@ class AlignTracker:
                 break
             attempt = self._pass(gaussians, frame, self._c2w(attempt), wide_schedule, 0.0, wide_schedule)
             renders += 1
-        return self._result(attempt)
+        return self._result(replace(attempt, report=replace(attempt.report, renders=renders)))
 
     def _pass(
         self,
@@ -364,8 +366,9 @@ class AlignTracker:
     def _result(self, attempt: Pass) -> AlignResult:
         fit = attempt.state.fit
         coverage = fit.inliers / attempt.valid.sum().clamp(min=1)
+        c2w = self._c2w(attempt)
         return AlignResult(
-            self._c2w(attempt), fit.geometric_sq, coverage, attempt.failure, fit.hessian, attempt.state.pose
+            c2w, fit.geometric_sq, coverage, attempt.failure, attempt.report, fit.hessian, attempt.state.pose
         )
 
 

@@ -33,7 +33,7 @@ from pipeline.slam.keyframes import KeyframePose, relocalisation_picks
 from pipeline.slam.map_version import MapVersion
 from pipeline.slam.state import FrontendState
 from pipeline.slam.timing import StageClock
-from pipeline.slam.tracking.align_tracker import is_large_step
+from pipeline.slam.tracking.align_tracker import SolveReport, is_large_step
 from pipeline.slam.tracking.trackers import Tracker
 from pipeline.slam.tracking.trajectory import TrackingState, Trajectory
 
@@ -73,6 +73,7 @@ class Attempt:
     keyframe: int | None = None  # the frame index of the keyframe it started from (relocalisation)
     by_odometry: bool = False  # the pose is odometry's: alignment failed from every guess
     c2w_host: torch.Tensor | None = None  # [4, 4] the same pose on the host, read with the verdict (None: not read)
+    solve: SolveReport | None = None  # align: the statistics of the solve it took (or that failed, by_odometry)
 
     @property
     def state(self) -> TrackingState:
@@ -218,7 +219,7 @@ class TrackingFrontend:
         if odometry is None:
             return replace(attempt, c2w=prediction, c2w_host=None)
         warning = f"pose from visual odometry alone (alignment: {verdict.lost})"
-        return Attempt(odometry, replace(verdict, lost="", warning=warning), by_odometry=True)
+        return Attempt(odometry, replace(verdict, lost="", warning=warning), by_odometry=True, solve=attempt.solve)
 
     def _odometry_guess(self, frame: DeviceFrame, now: dict[int, torch.Tensor]) -> torch.Tensor | None:
         """The last frame's pose moved by odometry's motion since it, as the keyframes now place
@@ -321,7 +322,7 @@ class TrackingFrontend:
         tracked = self.tracker(gaussians, frame, c2w_init, large_step=large_step)
         c2w = tracked.c2w.detach()
         verdict, c2w_host = self._verdict(frame, c2w, c2w_init, tracked.best_loss, tracked.coverage, tracked.failure)
-        return Attempt(c2w, verdict, keyframe, c2w_host=c2w_host)
+        return Attempt(c2w, verdict, keyframe, c2w_host=c2w_host, solve=tracked.solve)
 
     def _relocalise(
         self,
@@ -433,4 +434,5 @@ class TrackingFrontend:
             warning=warning,
             c2w_gt=None if frame.c2w_gt is None else frame.c2w_gt.cpu(),
             relocalised_from=attempt.keyframe,
+            solve=attempt.solve,
         )

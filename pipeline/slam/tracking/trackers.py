@@ -13,7 +13,7 @@ from pipeline.frame import DeviceFrame
 from pipeline.geometry import invert_pose, pose_matrix, rotmat_to_quat
 from pipeline.render import Camera, CapacityRenderer, Gaussians, Renderer
 from pipeline.slam.kernels import EAGER, SlamKernels
-from pipeline.slam.tracking.align_tracker import AlignTracker
+from pipeline.slam.tracking.align_tracker import AlignTracker, SolveReport
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class TrackResult:
     )  # [] that loss summed over the tracked pixels (device tensor; read it at the frame boundary)
     coverage: torch.Tensor  # [] fraction of valid-depth pixels tracked at that pose
     failure: str = ""  # why the method itself judges the pose unsound, if it does (align)
+    solve: SolveReport | None = None  # align: its final solve's statistics (adam: None)
 
 
 class Tracker(Protocol):
@@ -80,8 +81,8 @@ def track_aligned(
     inliers)."""
     aligned = aligner(gaussians, frame, c2w_init, wide=large_step)
     if refine.config.iters == 0:
-        return TrackResult(aligned.c2w, aligned.geometric_sq, aligned.coverage, aligned.failure)
-    return replace(track(gaussians, frame, aligned.c2w, settings=refine), failure=aligned.failure)
+        return TrackResult(aligned.c2w, aligned.geometric_sq, aligned.coverage, aligned.failure, aligned.report)
+    return replace(track(gaussians, frame, aligned.c2w, settings=refine), failure=aligned.failure, solve=aligned.report)
 
 
 def track(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import errno
 import logging
 import os
@@ -19,7 +20,7 @@ from pipeline.errors import OutputError
 from pipeline.io.files import atomic
 from pipeline.io.files.atomic import atomic_export, atomic_write_all, bytes_writer, current_umask
 from pipeline.io.files.trajectory import read_tum_trajectory
-from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.io.outputs.frame_row import COLUMNS, EARLIER_WIDTH, FrameRow
 from pipeline.io.outputs.periodic_save import PeriodicSave
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_folder import RunFolder
@@ -198,6 +199,25 @@ def test_frames_csv_keeps_the_rows_of_the_checkpointed_frames_and_drops_a_cut_li
     folder.append_frame(replace(row, index=3))
     folder.close()
     assert folder.frames_csv.read_text().splitlines()[-1].startswith("3,")
+
+
+def test_a_resume_keeps_the_rows_of_an_earlier_frames_csv_layout(tmp_path: Path) -> None:
+    """A run folder written before the solve's columns existed: its rows are kept on resume,
+    padded with empty cells under today's header, and the run goes on appending whole rows."""
+    folder = RunFolder(tmp_path)
+    earlier = [",".join(COLUMNS[:EARLIER_WIDTH])] + [
+        ",".join(str(c) for c in _row(i).cells()[:EARLIER_WIDTH]) for i in range(3)
+    ]
+    folder.frames_csv.write_text("\r\n".join(earlier) + "\r\n")
+    folder.keep_frames(2)
+    folder.append_frame(_row(2))
+    folder.close()
+    with open(folder.frames_csv, newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == list(COLUMNS) and [row[0] for row in rows[1:]] == ["0", "1", "2"]
+    assert {len(row) for row in rows} == {len(COLUMNS)} and rows[1][EARLIER_WIDTH:] == [""] * (
+        len(COLUMNS) - EARLIER_WIDTH
+    )
 
 
 def test_every_frames_csv_line_is_on_disk_as_soon_as_it_is_written(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ from pipeline.io.outputs.run_metrics import AteRecord, ClosedLoopRow, LoopRecord
 from pipeline.slam.handoff import FrameResult
 from pipeline.slam.loops.detection import ClosedLoop, LoopDetection, LoopTally
 from pipeline.slam.loops.pose_graph import MotionSize
+from pipeline.slam.tracking.align_tracker import SolveReport
 
 TIME = {"tracking_s": 0.01, "densify_s": 0.0, "mapping_s": 0.02, "total_s": 0.03, "frames_timed": 4,
         "warmup_frames_excluded": 2, "fps_wall": 30.0, "fps_steady": 33.0}  # fmt: skip
@@ -102,4 +103,21 @@ def test_a_frame_row_has_one_cell_per_column() -> None:
     result = FrameResult(3, 0.1, torch.eye(4), seconds, 100, 5, 0.25, 0.9, warning="weak", age_s=0.05)
     row = FrameRow.of(result)
     assert len(row.cells()) == len(COLUMNS) == len(dataclasses.fields(FrameRow))
-    assert row.cells()[:3] == [3, "0.100000", "0.010000"] and row.cells()[-2:] == ["", "0.0500"]
+    cells = dict(zip(COLUMNS, row.cells()))
+    assert row.cells()[:3] == [3, "0.100000", "0.010000"] and (cells["age_at_start_s"], cells["age_s"]) == (
+        "",
+        "0.0500",
+    )
+    assert cells["inlier_fraction"] == cells["renders"] == ""  # no alignment (adam, or the first frame)
+
+
+def test_a_frame_row_holds_the_alignment_s_last_solve() -> None:
+    """What tells a wrong step from a right one may be in the solve (bench/NOTES.md, #35): its
+    inliers among the pixels on the map, residuals, conditioning, how far it moved, its renders."""
+    seconds = {"tracking": 0.01, "densify": 0.0, "mapping": 0.0, "total": 0.01}
+    solve = SolveReport(1000, 800, 600, 0.0125, 0.05, 2.5e-3, 0.031, 1.5, renders=2)
+    cells = dict(
+        zip(COLUMNS, FrameRow.of(FrameResult(3, 0.1, torch.eye(4), seconds, 100, 5, 0.25, 0.9, solve=solve)).cells())
+    )
+    solved = [cells[name] for name in COLUMNS[COLUMNS.index("inlier_fraction") :]]
+    assert solved == ["0.7500", "1.2500", "0.0500", "2.500e-03", "3.100", "1.500", "2"]
