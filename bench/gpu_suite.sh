@@ -37,7 +37,7 @@ tum=$data/tum_fr1_xyz_37
 cabinet=$data/tum_fr3_cabinet_kf57  # issue 35's real loop (57 frames round a cabinet), carried in .data/ beside the TUM sample
 bench() { python3 -m pipeline bench --quiet --out "$out" --runs "$runs" "$@" "${dry[@]}" 2>&1 | tee -a "$out/bench.log" | grep -v "^gsplatam: bench\|^gsplatam: device\|^gsplatam: dataset" | tail -n 12
   for run in "$runs"/*/; do [ -L "${run%/}" ] && continue  # each run's poses and per-frame log (kilobytes), for per-frame analysis here
-    mkdir -p "$out/runs/$(basename "$run")" && cp "$run"trajectory.txt "$run"frames.csv "$run"metrics.json "$out/runs/$(basename "$run")/" 2>/dev/null
+    mkdir -p "$out/runs/$(basename "$run")" && cp "$run"trajectory.txt "$run"groundtruth.txt "$run"frames.csv "$run"metrics.json "$out/runs/$(basename "$run")/" 2>/dev/null
   done; }
 drift_variants=process-one-render,process,process-loops,process-adjust,process-adjust-loops
 run_part() {
