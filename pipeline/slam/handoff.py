@@ -37,9 +37,7 @@ class FrameResult:
     received_at: float | None = None  # live: host clock (time.perf_counter, s) at the frame's arrival
     age_at_start_s: float | None = None  # live: seconds from the frame's arrival to the start of its tracking
     age_s: float | None = None  # live: seconds from the frame's arrival to its result (set by the sink)
-    solve: SolveReport | None = (
-        None  # align: the statistics of the solve whose pose was taken (None: adam, the first frame)
-    )
+    solve: SolveReport | None = None  # align: the statistics of the solve whose pose was taken
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 from pipeline.slam.handoff import FrameResult
 
@@ -39,13 +39,17 @@ class FrameRow:
     @staticmethod
     def of(result: FrameResult) -> FrameRow:
         s, solve = result.seconds, result.solve
-        return FrameRow(
+        row = FrameRow(
             result.index, result.timestamp, s["tracking"], s["densify"], s["mapping"], s["total"],
             result.gaussians, result.added, result.tracking_loss, result.coverage, result.lost, result.warning,
             result.mapped, result.map_version, result.age_at_start_s, result.age_s,
-            *((None,) * 7 if solve is None else (
-                solve.inliers / max(solve.associated, 1), 100 * solve.rms_m, solve.rms_intensity, solve.conditioning,
-                100 * solve.moved_m, solve.moved_deg, solve.renders)),
+        )  # fmt: skip
+        if solve is None:
+            return row
+        return replace(
+            row, inlier_fraction=solve.inliers / max(solve.associated, 1), residual_cm=100 * solve.rms_m,
+            intensity_rms=solve.rms_intensity, conditioning=solve.conditioning, moved_cm=100 * solve.moved_m,
+            moved_deg=solve.moved_deg, renders=solve.renders,
         )  # fmt: skip
 
     def cells(self) -> list[str | int]:
