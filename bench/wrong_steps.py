@@ -6,7 +6,8 @@ inv(reference step) @ estimated step, as `metrics.step_errors`) over the steps w
 motion is over --min-step-cm; a step is wrong where its error is over --wrong-cm. For each
 numeric column: Spearman's rank correlation with the error, and the AUC of the column as a
 detector of wrong steps (the chance that a wrong step's value is above a right one's: 0.5
-separates nothing, 1 or 0 separates all). Then the wrong steps' own rows.
+separates nothing, 1 or 0 separates all), over all those steps and over those tracking did not
+already call lost (what a new verdict would have to find). Then the wrong steps' own rows.
 Usage: python3 bench/wrong_steps.py RUN_FOLDER... [--out FILE.md]
 """
 
@@ -67,21 +68,24 @@ def auc(values: np.ndarray, wrong: np.ndarray) -> float:
 
 def report(folders: list[Path], min_step_m: float, wrong_m: float) -> str:
     lines = [f"Steps over {100 * min_step_m:g} cm; wrong: error over {100 * wrong_m:g} cm.", ""]
-    lines += ["| run | steps | wrong | column | Spearman with error | AUC for wrong |", "|---|---|---|---|---|---|"]
+    lines += ["| run | steps | wrong | column | Spearman with error | AUC for wrong | not lost: steps, wrong, AUC |",
+              "|---|---|---|---|---|---|---|"]  # fmt: skip
     detail = ["", "| run | frame | step cm | error cm | " + " | ".join(COLUMNS) + " | lost |",
               "|---" * (len(COLUMNS) + 5) + "|"]  # fmt: skip
     for folder in folders:
         step, error, values, lost = step_table(folder)
         large = step > min_step_m
-        wrong = error[large] > wrong_m
+        kept = large & ~np.array([bool(reason) for reason in lost])
         for name in COLUMNS:
-            column = values[name][large]
-            known = ~np.isnan(column)
-            if known.sum() < 3:
+            known = ~np.isnan(values[name])
+            every, unflagged = large & known, kept & known
+            if every.sum() < 3:
                 continue
-            rho = spearman(column[known], error[large][known])
-            lines.append(f"| {folder.name} | {int(large.sum())} | {int(wrong.sum())} | {name} | {rho:+.2f} "
-                         f"| {auc(column[known], wrong[known]):.2f} |")  # fmt: skip
+            rho = spearman(values[name][every], error[every])
+            wrong, wrong_kept = error[every] > wrong_m, error[unflagged] > wrong_m
+            lines.append(f"| {folder.name} | {int(every.sum())} | {int(wrong.sum())} | {name} | {rho:+.2f} "
+                         f"| {auc(values[name][every], wrong):.2f} | {int(unflagged.sum())}, {int(wrong_kept.sum())}, "
+                         f"{auc(values[name][unflagged], wrong_kept):.2f} |")  # fmt: skip
         for i in np.flatnonzero(large & (error > wrong_m)):
             cells = " | ".join(f"{values[name][i]:.4g}" for name in COLUMNS)
             detail.append(
