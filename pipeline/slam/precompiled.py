@@ -84,11 +84,16 @@ def package_key(name: str, source: str, leaves: Sequence[Any], spec: TreeSpec) -
 
 
 TRIAL_LOAD = "import sys; from torch._inductor import aoti_load_package; aoti_load_package(sys.argv[1])"
+TRIAL_TIMEOUT_S = 300  # a start of Python and torch, and one load (seconds on a CPU)
 
 
 def trial_load(path: Path) -> None:
     """Load the package at `path` in a child process; RuntimeError, saying how, where it fails."""
-    done = subprocess.run([sys.executable, "-c", TRIAL_LOAD, str(path)], capture_output=True, text=True, check=False)
+    try:
+        command = [sys.executable, "-c", TRIAL_LOAD, str(path)]
+        done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=TRIAL_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"its package did not load in a child process within {TRIAL_TIMEOUT_S} s") from None
     if done.returncode == 0:
         return
     how = f"signal {signal.Signals(-done.returncode).name}" if done.returncode < 0 else f"exit {done.returncode}"

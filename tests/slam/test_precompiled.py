@@ -88,12 +88,23 @@ def test_a_function_export_refuses_runs_its_fallback(tmp_path: Path, caplog: pyt
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(
+    "loader, said",
+    [
+        (
+            "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)",
+            "(signal SIGSEGV; built with CXX=/opt/gcc/bin/g++)",
+        ),
+        ("import time; time.sleep(60)", "did not load in a child process within 1 s"),
+    ],
+    ids=["crashes", "hangs"],
+)
 def test_a_package_that_crashes_its_loader_is_not_kept_and_the_fallback_runs(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+    loader: str, said: str, tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A package whose library does not fit the process's C++ runtime kills the process that loads
-    it (SIGSEGV on the H200 at da7c30a): it is loaded in a child first, and a crash there means the
-    fallback, said once with the signal, and no package left to crash a later run."""
+    it (SIGSEGV on the H200 at da7c30a): it is loaded in a child first, and a crash or a hang there
+    means the fallback, said once with why, and no package left to crash a later run."""
     import torch._inductor
 
     from pipeline.slam import precompiled as module
@@ -103,7 +114,8 @@ def test_a_package_that_crashes_its_loader_is_not_kept_and_the_fallback_runs(
         "aoti_compile_and_package",
         lambda program, package_path: Path(package_path).write_bytes(b"built"),
     )
-    monkeypatch.setattr(module, "TRIAL_LOAD", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)")
+    monkeypatch.setattr(module, "TRIAL_LOAD", loader)
+    monkeypatch.setattr(module, "TRIAL_TIMEOUT_S", 1)
     monkeypatch.setenv("CXX", "/opt/gcc/bin/g++")
 
     def double(state: torch.Tensor) -> torch.Tensor:
@@ -114,5 +126,5 @@ def test_a_package_that_crashes_its_loader_is_not_kept_and_the_fallback_runs(
         for _ in range(2):
             assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
     assert caplog.text.count("could not be compiled ahead of time") == 1
-    assert "signal SIGSEGV; built with CXX=/opt/gcc/bin/g++" in caplog.text
+    assert said in caplog.text
     assert not any(tmp_path.iterdir())
