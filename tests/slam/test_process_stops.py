@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import queue
 import shutil
 import signal
 import subprocess
@@ -22,6 +23,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -37,6 +39,7 @@ from pipeline.io.outputs.run_folder import RunFolder
 from pipeline.io.sources.datasets.loader import open_dataset
 from pipeline.io.sources.datasets.synthetic_writer import write_synthetic
 from pipeline.slam.process import messages as m
+from pipeline.slam.process.client import MappingProcess
 from pipeline.slam.process.schedule import ProcessSplaTAM, start_process_slam
 from pipeline.slam.process.shared_map import MapReader, SharedMemoryShort, shared_memory_advice
 from pipeline.stages.upload import host_frame_tensors
@@ -376,3 +379,16 @@ def test_a_real_small_dev_shm_in_a_mount_namespace(runs: list[Run], replica_seq:
     )  # fmt: skip
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-3000:]
     assert "/dev/shm, which has 4.0 MiB free" in done.stderr.strip().splitlines()[-1]
+
+
+def test_a_mapping_side_that_reported_its_failure_and_ended_is_not_called_an_unexplained_end() -> None:
+    """The listener's wait may time out just before the mapping side's last message, and the next
+    check then finds it ended: its MappingFailed, still queued, names the cause (seen in a fresh
+    clone's suite: "the mapping thread ended unexpectedly (exit code 1)" for a mapping that raised)."""
+    client = object.__new__(MappingProcess)  # its listener's state alone: no mapping side started
+    client.side, client.failure, client._done = "the mapping thread", "", queue.SimpleQueue()
+    client.process = SimpleNamespace(is_alive=lambda: False, exitcode=1)
+    client.from_mapping = queue.Queue()
+    client.from_mapping.put(m.MappingFailed("RuntimeError: mapping broke\nTraceback ..."))
+    client._watch()
+    assert client.failure == "the mapping thread failed: RuntimeError: mapping broke"

@@ -271,6 +271,16 @@ class MappingProcess:
             with self._changed:
                 self._changed.notify_all()
 
+    def _dispatch_the_rest(self) -> None:
+        """Dispatch what the mapping side put before it ended: the listener's last wait may have
+        timed out just before its last message came (seen: a thread's MappingFailed, read as an
+        unexplained end)."""
+        while True:
+            try:
+                self._dispatch(self.from_mapping.get(timeout=WATCH_S))
+            except queue.Empty:
+                return
+
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, m.GrowMap):
             try:
@@ -306,6 +316,7 @@ class MappingProcess:
 
     def _watch(self) -> None:
         if not self.process.is_alive():
+            self._dispatch_the_rest()  # its MappingFailed, put just before it ended, names the cause
             self._fail(f"{self.side} ended unexpectedly (exit code {self.process.exitcode})")
             return
         now = time.monotonic()
