@@ -13,8 +13,9 @@ A function whose export or build fails runs its `fallback` instead (torch.compil
 in the log. So does one whose new package fails to load in a child process (`trial_load`): a
 package's shared library that does not fit the process's C++ runtime crashes whatever loads it,
 which no `except` can catch (SIGSEGV on the H200 at da7c30a, where the image's `CXX` links
-libstdc++ into the library statically: bench/NOTES.md, Change 36). A package is native code, as inductor's own cached kernels are: it is only ever read
-from the user's own cache folder, never from a run folder.
+libstdc++ into the library statically: bench/NOTES.md, Change 36). A package is native code, as
+inductor's own cached kernels are: it is only ever read from the user's own cache folder, never
+from a run folder.
 """
 
 from __future__ import annotations
