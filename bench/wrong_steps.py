@@ -2,7 +2,7 @@
 
 Per run folder (trajectory.txt, groundtruth.txt and frames.csv, as `run` writes them for a
 dataset with reference poses): each frame's step error (the translation of
-inv(reference step) @ estimated step, as `metrics.step_errors`) over the steps whose reference
+inv(reference step) @ estimated step, `metrics.each_step_error`) over the steps whose reference
 motion is over --min-step-cm; a step is wrong where its error is over --wrong-cm. For each
 numeric column: Spearman's rank correlation with the error, and the AUC of the column as a
 detector of wrong steps (the chance that a wrong step's value is above a right one's: 0.5
@@ -21,6 +21,7 @@ import numpy as np
 
 from pipeline.io.files.atomic import atomic_write_text
 from pipeline.io.files.trajectory import read_tum_trajectory
+from pipeline.metrics import each_step_error
 
 COLUMNS = ("tracking_loss", "coverage", "inlier_fraction", "residual_cm", "intensity_rms", "conditioning",
            "moved_cm", "moved_deg", "renders")  # fmt: skip
@@ -31,14 +32,12 @@ def step_table(folder: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarr
     1..N-1 (nan where empty), each frame's `lost`)."""
     _, estimated = read_tum_trajectory(folder / "trajectory.txt")
     _, reference = read_tum_trajectory(folder / "groundtruth.txt")
-    estimated_steps = np.linalg.inv(estimated[:-1]) @ estimated[1:]
-    reference_steps = np.linalg.inv(reference[:-1]) @ reference[1:]
-    errors = np.linalg.norm((np.linalg.inv(reference_steps) @ estimated_steps)[:, :3, 3], axis=1)
+    lengths, errors = each_step_error(estimated, reference)
     with open(folder / "frames.csv", newline="") as table:
         rows = {int(row["index"]): row for row in csv.DictReader(table)}
     ordered = [rows[i] for i in sorted(rows)][1 : len(estimated)]
     values = {name: np.array([float(row.get(name) or "nan") for row in ordered]) for name in COLUMNS}
-    return np.linalg.norm(reference_steps[:, :3, 3], axis=1), errors, values, [row["lost"] for row in ordered]
+    return lengths, errors, values, [row["lost"] for row in ordered]
 
 
 def ranks(values: np.ndarray) -> np.ndarray:

@@ -64,16 +64,23 @@ class StepError:
     min_step_m: float
 
 
-def step_errors(estimated_c2w: np.ndarray, reference_c2w: np.ndarray, min_step_m: float = LARGE_STEP_M) -> StepError:
-    """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4] (no alignment: a
-    relative motion does not depend on the world frame)."""
+def each_step_error(estimated_c2w: np.ndarray, reference_c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4] -> (each reference
+    step's length [N-1] metres, the translation of inv(reference step) @ estimated step [N-1]
+    metres). No alignment: a relative motion does not depend on the world frame."""
     estimated_steps = np.linalg.inv(estimated_c2w[:-1]) @ estimated_c2w[1:]
     reference_steps = np.linalg.inv(reference_c2w[:-1]) @ reference_c2w[1:]
-    large = np.linalg.norm(reference_steps[:, :3, 3], axis=1) > min_step_m
-    if not large.any():
+    errors = np.linalg.norm((np.linalg.inv(reference_steps) @ estimated_steps)[:, :3, 3], axis=1)
+    return np.linalg.norm(reference_steps[:, :3, 3], axis=1), errors
+
+
+def step_errors(estimated_c2w: np.ndarray, reference_c2w: np.ndarray, min_step_m: float = LARGE_STEP_M) -> StepError:
+    """Of camera-to-world poses [N, 4, 4] against their references [N, 4, 4] (`each_step_error`)."""
+    lengths, each = each_step_error(estimated_c2w, reference_c2w)
+    errors = each[lengths > min_step_m]
+    if not len(errors):
         return StepError(0, 0.0, 0.0, 0.0, min_step_m)
-    errors = np.linalg.norm((np.linalg.inv(reference_steps[large]) @ estimated_steps[large])[:, :3, 3], axis=1)
-    return StepError(int(large.sum()), float(errors.mean()), float(np.median(errors)), float(errors.max()), min_step_m)
+    return StepError(len(errors), float(errors.mean()), float(np.median(errors)), float(errors.max()), min_step_m)
 
 
 @dataclass

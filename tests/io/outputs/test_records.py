@@ -9,7 +9,7 @@ import json
 import pytest
 import torch
 
-from pipeline.io.outputs.frame_row import COLUMNS, FrameRow
+from pipeline.io.outputs.frame_row import COLUMNS, EARLIER_WIDTH, FrameRow
 from pipeline.io.outputs.run_description import RunDescription
 from pipeline.io.outputs.run_metrics import AteRecord, ClosedLoopRow, LoopRecord, RunMetrics, TimingRecord
 from pipeline.slam.handoff import FrameResult
@@ -119,5 +119,5 @@ def test_a_frame_row_holds_the_alignment_s_last_solve() -> None:
     cells = dict(
         zip(COLUMNS, FrameRow.of(FrameResult(3, 0.1, torch.eye(4), seconds, 100, 5, 0.25, 0.9, solve=solve)).cells())
     )
-    solved = [cells[name] for name in COLUMNS[COLUMNS.index("inlier_fraction") :]]
+    solved = [cells[name] for name in COLUMNS[EARLIER_WIDTH:]]
     assert solved == ["0.7500", "1.2500", "0.0500", "2.500e-03", "3.100", "1.500", "2"]
