@@ -4,7 +4,7 @@ At da7c30a every `run.precompile` cell on the H200 died with SIGSEGV inside
 `aoti_load_package`, right after building its first package. Each case below runs in its own
 process (a crash ends that case only) and prints one line; the table goes to OUT/aoti_probe.md:
 - `toy`: a float32 elementwise function, built and loaded (is AOTInductor on CUDA usable at all?);
-- `build`: the align iteration (`lm_iteration`) at a 12x16 level, built only;
+- `build`: the align iteration (`lm_iteration`) at a 12x16 level, built (in a child, as a run builds it);
 - `load`, `load-index-0`, `load-side-stream`: that package loaded and run in a fresh process,
   with the device index -1 or 0, or under a side stream as `cuda_graphs.record`'s warm-up calls.
 Usage: python3 bench/aoti_probe.py --out OUT
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import torch
-from torch.utils._pytree import tree_flatten, tree_leaves
+from torch.utils._pytree import tree_leaves
 
 CASES = ("toy", "build", "load", "load-index-0", "load-side-stream")
 
@@ -60,12 +60,12 @@ def _case(case: str, folder: Path) -> str:
         return _toy(folder)
     args = _level_on_cuda()
     precompiled = Precompiled(lm_iteration, "lm_iteration", folder, fallback=lm_iteration)
-    if case == "build":
-        leaves, spec = tree_flatten(args)
-        from pipeline.slam.precompiled import package_key
+    if case == "build":  # in a child process of its own, as a run builds it
+        from pipeline.package_builds import BUILDS
 
-        precompiled._runner(package_key("lm_iteration", precompiled.source, leaves, spec), leaves, spec)
-        return "built"
+        precompiled(*args)
+        BUILDS.wait()
+        return f"built {precompiled.built} failed {precompiled.failed}"
     if case == "load-index-0":
         torch.cuda.set_device(0)
     side = torch.cuda.Stream()

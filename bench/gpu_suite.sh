@@ -157,10 +157,10 @@ run_part() {
                 --variants sequential-keyframe,sequential-keyframe-grid-eager
               bench "$cabinet" --presets tiny --variants sequential-odometry,sequential-odometry-grid-eager \
                 --set dataset.width=640 --set dataset.height=480 --stem grid_eager_cabinet ;;
-    precompile-build)  # issue 34: one run that builds the align iterations' packages (~1 minute each on the device), to carry into later calls
+    precompile-build)  # issue 34: one run (torch.compile'd) whose end waits for the align iterations' packages, built in parallel child processes, to carry into later calls
               bench synthetic-tum --presets tiny --set synthetic.frames=40 --stem precompile_build_tiny --variants sequential-keyframe-precompiled
               cp -r .device/cache/gsplatam/aoti "$out/" 2>/dev/null ;;
-    warm-start-precompile)  # issue 34: the align iterations as AOTInductor packages: the first precompiled cell builds them, the rest load them
+    warm-start-precompile)  # issue 34: the align iterations as AOTInductor packages: the first precompiled cell builds them beside its run (waiting at its end), the rest load them
               bench synthetic-tum --presets tiny --repeats 2 --set synthetic.frames=40 --stem warm_start_precompile_tiny \
                 --variants sequential-keyframe,sequential-keyframe-precompiled,process-precompiled
               cp -r .device/cache/gsplatam/aoti "$out/" 2>/dev/null ;;  # the packages built, to carry into later calls

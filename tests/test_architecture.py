@@ -13,7 +13,7 @@ from conftest import ROOT
 # (what a run leaves), beside what a person watches, sit above the stages that carry frames through SLAM.
 FLOORS: list[tuple[str, tuple[str, ...]]] = [
     ("ground", ("pipeline.errors", "pipeline.extras", "pipeline.config", "pipeline.geometry", "pipeline.frame",
-                "pipeline.source", "pipeline.devices", "pipeline.compile_cache", "pipeline.processes",
+                "pipeline.source", "pipeline.devices", "pipeline.compile_cache", "pipeline.package_builds", "pipeline.processes",
                 "pipeline.io.files")),
     ("sources", ("pipeline.io.sources",)),
     ("maths", ("pipeline.render", "pipeline.slam", "pipeline.metrics")),

@@ -33,6 +33,7 @@ from pipeline.io.sources.datasets.source import DatasetSource
 from pipeline.io.sources.datasets.synthetic import synthetic_for
 from pipeline.io.sources.datasets.synthetic_writer import cached_synthetic
 from pipeline.metrics import view_quality
+from pipeline.package_builds import wait_for_builds
 from pipeline.render import Gaussians, RenderOutput
 from pipeline.runtime import RuntimeReport
 from pipeline.slam.state import Checkpoint
@@ -90,6 +91,7 @@ def run_slam(
                         return RunResult(session.folder, None)
                     raise UserError("no frame was processed")
                 metrics = _finish(session, dataset, report, signalled, progress, before_final)
+                wait_for_builds(signalled.is_set)  # (`run.precompile`: the packages for later runs)
             session.linger(run_summary(metrics) + f"\n\nin {session.folder.path}")
             return RunResult(session.folder, metrics)
         finally:

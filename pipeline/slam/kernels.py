@@ -21,7 +21,7 @@ from pipeline.compile_cache import compile_cache_folder, persist_compile_cache
 from pipeline.slam.cuda_graphs import DEVICE_WIDE
 from pipeline.slam.losses import ssim
 from pipeline.slam.precompiled import Precompiled
-from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignIteration, AlignKernels, batched, lm_iteration
+from pipeline.slam.tracking.rgbd_alignment import EAGER_ALIGN, AlignIteration, AlignKernels, lm_iteration, lm_iterations
 
 
 def tracking_loss(
@@ -108,13 +108,12 @@ def make_kernels(compiled: bool, compile_grid: bool = True, precompile: bool = F
         return SlamKernels(tracking_loss, mapping_loss, EAGER_ALIGN)
     device = torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
     persist_compile_cache(device)
-    batch = batched(lm_iteration)
     one: AlignIteration = compile_whole(lm_iteration)
-    grid: AlignIteration = compile_whole(batch) if compile_grid else batch
+    grid: AlignIteration = compile_whole(lm_iterations) if compile_grid else lm_iterations
     if precompile:
         folder = compile_cache_folder(device, "aoti")
         one = Precompiled(lm_iteration, "lm_iteration", folder, fallback=one)
-        grid = Precompiled(batch, "lm_iteration_batched", folder, fallback=grid) if compile_grid else grid
+        grid = Precompiled(lm_iterations, "lm_iterations", folder, fallback=grid) if compile_grid else grid
     return SlamKernels(compile_whole(tracking_loss), compile_whole(mapping_loss), AlignKernels(one, grid))
 
 

@@ -11,9 +11,11 @@ from pipeline.config import SyntheticConfig, load_config, with_dataset_defaults
 from pipeline.frame import DeviceFrame, Frame
 from pipeline.geometry import invert_pose, se3_exp
 from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scene, render_view, trajectory
+from pipeline.package_builds import BUILDS
 from pipeline.render import Camera, RenderOutput, make_capacity_renderer, make_renderer
 from pipeline.slam.gaussian_map import seed_gaussians
 from pipeline.slam.kernels import EAGER, make_kernels
+from pipeline.slam.precompiled import Precompiled
 from pipeline.slam.process.schedule import start_process_slam
 from pipeline.slam.splatam import SplaTAM
 from pipeline.slam.tracking.align_tracker import AlignTracker
@@ -68,15 +70,23 @@ def test_the_align_solve_replayed_as_a_cuda_graph_equals_the_eager_solve(
     variants = {"eager": (EAGER, False), "graphed": (EAGER, True)}
     variants["compiled and graphed"] = (make_kernels(compiled=True), True)  # as the presets run on CUDA
     variants["compiled, the grid's iteration not, graphed"] = (make_kernels(True, compile_grid=False), True)
-    variants["precompiled (AOTInductor) and graphed"] = (make_kernels(True, precompile=True), True)
+    near, far = config.render.near, config.render.far
+    building = make_kernels(True, precompile=True)  # this solve's packages built (the fallback runs meanwhile)
+    AlignTracker(_exact_renderer, config.tracking, near, far, building.align, capture=False)(
+        None, frame, init, wide=wide
+    )  # type: ignore[arg-type]
+    assert BUILDS.wait()
+    precompiled = make_kernels(True, precompile=True)  # as a later run: the packages loaded
+    variants["precompiled (AOTInductor) and graphed"] = (precompiled, True)
     results = {}
     for name, (kernels, capture) in variants.items():
-        near, far = config.render.near, config.render.far
         tracker = AlignTracker(_exact_renderer, config.tracking, near, far, kernels.align, capture=capture)
         for _ in range(2):  # a graph is recorded on the first call and replayed on the second
             results[name] = tracker(None, frame, init, wide=wide)  # type: ignore[arg-type]
     assert "could not be recorded" not in caplog.text  # replayed, not run uncaptured after a failed recording
-    assert "could not be compiled ahead of time" not in caplog.text  # the packages ran, not their fallback
+    assert "could not be compiled ahead of time" not in caplog.text
+    assert isinstance(precompiled.align.one, Precompiled) and precompiled.align.one.loaded > 0  # the packages ran
+    assert not wide or (isinstance(precompiled.align.batch, Precompiled) and precompiled.align.batch.loaded > 0)
     eager = results["eager"]
     assert eager.failure == ""
     assert float(torch.linalg.norm(eager.c2w[:3, 3].double().cpu() - torch.from_numpy(truth[:3, 3]))) < 0.005

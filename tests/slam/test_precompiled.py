@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 from torch.utils._pytree import tree_flatten, tree_leaves
 
-from pipeline.slam.precompiled import Precompiled, package_key, source_digest, source_modules
+from pipeline.package_builds import BUILDS
+from pipeline.slam.precompiled import Precompiled, describe, package_key, source_digest, source_modules
 from pipeline.slam.tracking.pyramid import rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
     AlignParams,
@@ -36,23 +38,45 @@ def _level() -> tuple[LmState, SourcePoints, TargetMaps]:
     return lm_start(pose), source_points(level), target_maps(level)
 
 
-def _never_called(*args: object) -> LmState:
-    raise AssertionError("the fallback ran")
+class Counted:
+    """A fallback that counts its calls and returns the eager iteration's result."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, *args: Any) -> LmState:
+        self.calls += 1
+        return lm_iteration(*args)
+
+
+def branching(state: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """A data-dependent branch: export refuses it."""
+    return state + step if float(step.sum()) > 0 else state - step
+
+
+def double(state: torch.Tensor) -> torch.Tensor:
+    return state * 2
 
 
 @pytest.mark.slow
-def test_a_package_is_built_once_and_loaded_by_a_later_run(tmp_path: Path) -> None:
-    """The first instance builds the package (export and AOTInductor: tens of seconds on the CPU);
-    a second, as a later process would, loads it; both equal the eager iteration within float tolerance."""
+def test_a_package_is_built_beside_the_run_and_loaded_by_a_later_one(tmp_path: Path) -> None:
+    """The first instance runs its fallback while a child process builds the package (export and
+    AOTInductor: tens of seconds on the CPU); a second, as a later run would, loads it and equals
+    the eager iteration within float tolerance."""
     state, source, target = _level()
     eager = lm_iteration(state, source, target, PARAMS)
-    first = Precompiled(lm_iteration, "lm_iteration", tmp_path, fallback=_never_called)
-    later = Precompiled(lm_iteration, "lm_iteration", tmp_path, fallback=_never_called)
-    for precompiled in (first, later):
-        result = precompiled(state, source, target, PARAMS)
-        assert isinstance(result, LmState) and isinstance(result.fit.cost, torch.Tensor)
-        for got, want in zip(tree_leaves(result), tree_leaves(eager)):
-            torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)  # fused float32 arithmetic
+    fallback = Counted()
+    first = Precompiled(lm_iteration, "lm_iteration", tmp_path, fallback=fallback)
+    for _ in range(2):
+        first(state, source, target, PARAMS)
+    assert fallback.calls == 2 and BUILDS.pending() == 1  # one build for the one signature
+    assert BUILDS.wait()
+    later = Precompiled(lm_iteration, "lm_iteration", tmp_path, fallback=fallback)
+    result = later(state, source, target, PARAMS)
+    assert fallback.calls == 2, "the package ran"
+    assert isinstance(result, LmState) and isinstance(result.fit.cost, torch.Tensor)
+    for got, want in zip(tree_leaves(result), tree_leaves(eager)):
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)  # fused float32 arithmetic
     assert (first.built, first.loaded, later.built, later.loaded) == (1, 0, 0, 1)
     assert [p.suffix for p in tmp_path.iterdir()] == [".pt2"]  # no partial file left beside it
 
@@ -62,69 +86,111 @@ def test_a_package_depends_on_shapes_constants_and_source() -> None:
     digest = source_digest(lm_iteration)
 
     def key(*args: object, name: str = "lm_iteration", code: str = digest) -> str:
-        return package_key(name, code, *tree_flatten(args))
+        leaves, spec = tree_flatten(args)
+        return package_key(name, code, (spec, *map(describe, leaves)))
 
     same = key(state, source, target, PARAMS)
     assert same == key(*_level(), PARAMS)  # other values of the same shapes
     assert same != key(state, source, target, PARAMS._replace(depth_sigma=0.02))  # constants are baked in
     assert same != key(state, SourcePoints(*(field[:10] for field in source)), target, PARAMS)
     assert same != key(state, source, target, PARAMS, code="another source")
-    assert same != key(state, source, target, PARAMS, name="lm_iteration_batched")
+    assert same != key(state, source, target, PARAMS, name="lm_iterations")
     assert {"pipeline.geometry", "pipeline.slam.tracking.rgbd_alignment"} <= set(source_modules(lm_iteration))
 
 
-def test_a_function_export_refuses_runs_its_fallback(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """A data-dependent branch cannot be exported: the fallback runs, said once, and no package is
-    written."""
-
-    def branching(state: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-        return state + step if float(step.sum()) > 0 else state - step
-
-    precompiled = Precompiled(branching, "branching", tmp_path, fallback=lambda s, d: s * 0)
+def test_a_function_export_refuses_runs_its_fallback_and_is_not_built_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A data-dependent branch cannot be exported: the fallback runs, the failure is said once
+    with export's reason and noted beside where the package would be, and a later run reads the
+    note rather than build it again."""
+    ones = torch.ones(3)
     with caplog.at_level(logging.WARNING, logger="gsplatam"):
         for _ in range(2):
-            assert torch.equal(precompiled(torch.ones(3), torch.ones(3)), torch.zeros(3))
-    assert precompiled.failed and caplog.text.count("could not be compiled ahead of time") == 1
-    assert not any(tmp_path.iterdir())
+            precompiled = Precompiled(branching, "branching", tmp_path, fallback=lambda s, d: s * 0)
+            assert torch.equal(precompiled(ones, ones), torch.zeros(3))
+            assert BUILDS.wait()
+            assert precompiled.failed
+    assert caplog.text.count("could not be compiled ahead of time") == 2  # once per run
+    assert "data-dependent" in caplog.text or "Could not guard" in caplog.text, caplog.text
+    assert [p.suffix for p in tmp_path.iterdir()] == [".failed"]
+    assert precompiled.built == 0
 
 
 @pytest.mark.parametrize(
-    "loader, said",
+    "builder, said, noted",
     [
         (
             "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)",
-            "(signal SIGSEGV; built with CXX=/opt/gcc/bin/g++)",
+            "its build died of SIGSEGV; built with CXX=/opt/gcc/bin/g++",
+            True,
         ),
-        ("import time; time.sleep(60)", "did not load in a child process within 1 s"),
+        ("import time; time.sleep(60)", "its build did not finish within 1 s", True),
+        ("import os, signal; os.kill(os.getpid(), signal.SIGTERM)", "its build died of SIGTERM", False),
     ],
-    ids=["crashes", "hangs"],
+    ids=["crashes", "hangs", "is-stopped"],
 )
-def test_a_package_that_crashes_its_loader_is_not_kept_and_the_fallback_runs(
-    loader: str, said: str, tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+def test_a_build_that_crashes_or_hangs_leaves_no_package_and_the_fallback_runs(
+    builder: str,
+    said: str,
+    noted: bool,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A package whose library does not fit the process's C++ runtime kills the process that loads
-    it (SIGSEGV on the H200 at da7c30a): it is loaded in a child first, and a crash or a hang there
-    means the fallback, said once with why, and no package left to crash a later run."""
-    import torch._inductor
+    it (SIGSEGV on the H200 at da7c30a): the build's child loads it first, so a crash or a hang
+    there means the fallback, said once with why, no package, and a note that spares later runs
+    the same build; a build stopped by a signal is not noted (a later run builds it)."""
+    from pipeline import package_builds
 
-    from pipeline.slam import precompiled as module
-
-    monkeypatch.setattr(
-        torch._inductor,
-        "aoti_compile_and_package",
-        lambda program, package_path: Path(package_path).write_bytes(b"built"),
-    )
-    monkeypatch.setattr(module, "TRIAL_LOAD", loader)
-    monkeypatch.setattr(module, "TRIAL_TIMEOUT_S", 1)
+    monkeypatch.setattr(package_builds, "BUILDER", builder)
+    monkeypatch.setattr(package_builds, "BUILD_TIMEOUT_S", 1)
     monkeypatch.setenv("CXX", "/opt/gcc/bin/g++")
-
-    def double(state: torch.Tensor) -> torch.Tensor:
-        return state * 2
-
     precompiled = Precompiled(double, "double", tmp_path, fallback=lambda s: s * 3)
     with caplog.at_level(logging.WARNING, logger="gsplatam"):
-        for _ in range(2):
-            assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
+        assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
+        assert BUILDS.wait()
+        assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
     assert caplog.text.count("could not be compiled ahead of time") == 1
     assert said in caplog.text
-    assert not any(tmp_path.iterdir())
+    assert [p.suffix for p in tmp_path.iterdir()] == ([".failed"] if noted else [])
+
+
+def test_builds_run_at_most_max_builds_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each build holds a core: the others queue until one ends, and every one is run."""
+    from pipeline import package_builds
+
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    builder = (  # marks itself running, counts those running, and says the count as its failure
+        f"import os, time, pathlib; m = pathlib.Path({str(marks)!r}) / str(os.getpid()); m.touch(); "
+        "time.sleep(0.5); n = len(list(m.parent.iterdir())); m.unlink(); raise SystemExit(f'running {n}')"
+    )
+    monkeypatch.setattr(package_builds, "BUILDER", builder)
+    monkeypatch.setattr(package_builds, "MAX_BUILDS", 2)
+    builds = package_builds.PackageBuilds()
+    ended: list[str] = []
+    for n in range(5):
+        job = package_builds.BuildJob(double, "double", tmp_path / f"double-{n}.pt2", (), tree_flatten(())[1])
+        builds.start(job, ended.append)
+    assert builds.wait()
+    assert len(ended) == 5 and all(why in ("running 1", "running 2") for why in ended), ended
+
+
+@pytest.mark.parametrize("stopped", [False, True], ids=["waits", "is-interrupted"])
+def test_the_end_of_a_run_waits_for_its_builds_unless_interrupted(
+    stopped: bool, tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline import package_builds
+
+    monkeypatch.setattr(package_builds, "BUILDER", "import time; time.sleep(0.5)")
+    builds = package_builds.PackageBuilds()
+    monkeypatch.setattr(package_builds, "BUILDS", builds)
+    builds.start(package_builds.BuildJob(double, "double", tmp_path / "double.pt2", (), tree_flatten(())[1]), print)
+    with caplog.at_level(logging.INFO, logger="gsplatam"):
+        package_builds.wait_for_builds(lambda: stopped)
+    assert "waiting for 1 align iteration package(s)" in caplog.text
+    assert builds.pending() == int(stopped)
+    assert ("left 1 package build(s) to finish in the background" in caplog.text) == stopped
+    builds.wait()

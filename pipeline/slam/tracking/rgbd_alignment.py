@@ -281,7 +281,7 @@ def solve_positive_definite(system: torch.Tensor, rhs: torch.Tensor) -> tuple[to
     row exchanges, written out as tensor operations (n of a few), and whether `system` is
     positive definite (a 0-d bool: every pivot positive, as they are exactly then).
 
-    Not torch.linalg: under `batched` a batch of factorisations goes to MAGMA on CUDA, which
+    Not torch.linalg: under `lm_iterations` a batch of factorisations goes to MAGMA on CUDA, which
     allocates device memory and so cannot be recorded in a CUDA graph. Written out it is four
     element-wise kernels a column (which the compiled iteration fuses); a positive definite
     system needs no row exchanges."""
@@ -298,7 +298,7 @@ def solve_positive_definite(system: torch.Tensor, rhs: torch.Tensor) -> tuple[to
 
 def lm_start(pose: torch.Tensor) -> LmState:
     """A level's first state: evaluate `pose` [..., 4, 4] float64 first (any cost beats
-    infinity); leading dimensions make a batch of independent solves (`batched`)."""
+    infinity); leading dimensions make a batch of independent solves (`lm_iterations`)."""
     batch, device = pose.shape[:-2], pose.device
     zero = torch.zeros(batch, dtype=torch.float64, device=device)
     count = torch.zeros(batch, dtype=torch.long, device=device)
@@ -331,29 +331,30 @@ def lm_iteration(state: LmState, source: SourcePoints, target: TargetMaps, param
 AlignIteration = Callable[[LmState, SourcePoints, TargetMaps, AlignParams], LmState]
 
 
-def batched(iteration: AlignIteration) -> AlignIteration:
-    """`iteration` over a batch of states (each field with a leading dimension: solves from
+def lm_iterations(states: LmState, source: SourcePoints, target: TargetMaps, params: AlignParams) -> LmState:
+    """`lm_iteration` over a batch of states (each field with a leading dimension: solves from
     several starts, `lm_start` of [S, 4, 4]) against one source and target: one kernel per
-    operation for all of them. Compile the result, not `iteration`: a compiled function
+    operation for all of them. Compile this, not `lm_iteration` under vmap: a compiled function
     under vmap runs eager (dynamo refuses the transform)."""
-    return torch.vmap(iteration, in_dims=(0, None, None, None))
+    solves: LmState = torch.vmap(lm_iteration, in_dims=(0, None, None, None))(states, source, target, params)
+    return solves
 
 
 def solve_of(solves: LmState, index: int) -> LmState:
-    """Solve `index` of a batch of solves (`batched`: each field with a leading dimension)."""
+    """Solve `index` of a batch of solves (`lm_iterations`: each field with a leading dimension)."""
     state: LmState = tree_map(lambda field: field[index], solves)
     return state
 
 
 class AlignKernels(NamedTuple):
-    """The iteration from one start (`one`) and over a batch of starts (`batch`, `batched`),
+    """The iteration from one start (`one`) and over a batch of starts (`batch`, `lm_iterations`),
     compiled apart where compiled (`make_kernels`)."""
 
     one: AlignIteration
     batch: AlignIteration
 
 
-EAGER_ALIGN = AlignKernels(lm_iteration, batched(lm_iteration))
+EAGER_ALIGN = AlignKernels(lm_iteration, lm_iterations)
 
 
 def align(
@@ -365,7 +366,7 @@ def align(
     start: torch.Tensor | None = None,
 ) -> LmState:
     """Coarse to fine from the motion `start` [4, 4] float64 (default: the identity; [S, 4, 4]
-    with a `batched` iteration: S solves at once). `sources`, `targets` and `params` hold one
+    with `lm_iterations`: S solves at once). `sources`, `targets` and `params` hold one
     entry per pyramid level, finest first; `schedule` the iterations per level, coarsest first.
     Each level starts from the best pose of the one before -> the finest level's last state."""
     pose = torch.eye(4, dtype=torch.float64, device=sources[0].points.device) if start is None else start

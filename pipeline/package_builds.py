@@ -1,0 +1,232 @@
+"""AOTInductor packages built in child processes, beside the run that wants them.
+
+A build (torch.export, AOTInductor's C++ compile, a first load) takes about a minute on the
+H200's host and 10-60 s on a CPU, mostly in one Python thread and one compiler process; seven
+one after the other made a first run 7-10 minutes longer (bench/NOTES.md, Change 36). Here each
+build is a child process of its own (`BUILDER`), up to `MAX_BUILDS` at once, started in a
+session of its own so that an interrupt of the run does not lose it; the run goes on with its
+torch.compile'd fallback meanwhile. The child writes the package under a partial name, loads it
+once (a package whose shared library does not fit the process's C++ runtime kills whatever
+loads it: SIGSEGV on the H200 at da7c30a), and only then renames it into place, so that a
+package in the cache folder has been loaded once on this machine. A build that fails for a
+reason that would fail again (an exception, a crash, a hang past `BUILD_TIMEOUT_S`) leaves a
+`.failed` note beside where the package would be, naming why; later runs read it and do not
+build again (a change of source or shapes is another package and is tried afresh).
+
+The job reaches the child on its standard input, pickled: from this process, never from disk.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
+
+from pipeline.io.files.atomic import atomic_write_text
+
+log = logging.getLogger("gsplatam")
+
+BUILDER = "from pipeline.package_builds import build_from_stdin; build_from_stdin()"
+BUILD_TIMEOUT_S = 1800  # one build on two busy CPU cores; a hang past it is a failure
+MAX_BUILDS = max(1, (os.cpu_count() or 2) // 2)  # each holds about one core (and, on CUDA, a context)
+INTERRUPTED = {signal.SIGINT, signal.SIGTERM, signal.SIGKILL, signal.SIGHUP}  # a build stopped, not failed
+
+
+class TensorMeta(NamedTuple):
+    """What an export needs of an input tensor: it traces with fake tensors, never the values."""
+
+    shape: tuple[int, ...]
+    stride: tuple[int, ...]
+    dtype: torch.dtype
+    device: str
+
+    @staticmethod
+    def of(tensor: torch.Tensor) -> TensorMeta:
+        return TensorMeta(tuple(tensor.shape), tuple(tensor.stride()), tensor.dtype, str(tensor.device))
+
+    def example(self) -> torch.Tensor:
+        return torch.empty_strided(self.shape, self.stride, dtype=self.dtype, device=self.device).zero_()
+
+
+@dataclass(frozen=True)
+class BuildJob:
+    """`fn(*tree_unflatten(leaves, spec))` (a function a child can import: module level) as an
+    AOTInductor package at `path`; tensors among `leaves` as `TensorMeta`."""
+
+    fn: Callable[..., Any]
+    name: str
+    path: Path
+    leaves: tuple[Any, ...]
+    spec: TreeSpec
+
+    @property
+    def failed_note(self) -> Path:
+        return self.path.with_suffix(".failed")
+
+    def partial(self, pid: int) -> Path:
+        """Where the child `pid` writes the package until it has loaded it (AOTInductor wants .pt2)."""
+        return self.path.with_name(f".{self.path.stem}.{pid}.partial.pt2")
+
+
+class _FlatCall(torch.nn.Module):
+    """`fn` over flat tensors: the export's input and output are tensors only (a package keeps
+    no Python structure); the other arguments are constants of the program."""
+
+    def __init__(self, fn: Callable[..., Any], leaves: Sequence[Any], spec: TreeSpec) -> None:
+        super().__init__()
+        self.fn, self.leaves, self.spec = fn, list(leaves), spec
+
+    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        given = iter(tensors)
+        leaves = [next(given) if isinstance(leaf, torch.Tensor) else leaf for leaf in self.leaves]
+        args = tree_unflatten(leaves, self.spec)
+        out, out_spec = tree_flatten(self.fn(*args))
+        if out_spec != tree_flatten(args[0])[1]:  # (the caller rebuilds the result as its first argument)
+            raise TypeError(f"{self.fn} returns a structure other than its first argument's")
+        return tuple(out)
+
+
+def build(job: BuildJob) -> None:
+    """Export, compile and load `job`'s function, then put the package in place (in the child)."""
+    from torch._inductor import aoti_compile_and_package, aoti_load_package
+
+    leaves = [leaf.example() if isinstance(leaf, TensorMeta) else leaf for leaf in job.leaves]
+    tensors = tuple(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))
+    partial = job.partial(os.getpid())
+    try:
+        with torch.no_grad():
+            program = torch.export.export(_FlatCall(job.fn, leaves, job.spec), tensors, strict=False)
+            aoti_compile_and_package(program, package_path=str(partial))
+        aoti_load_package(str(partial))  # a library that does not fit this runtime crashes here, not in a run
+        os.replace(partial, job.path)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+def build_from_stdin() -> None:
+    """A child's whole work: the job pickled on standard input (by its parent), built; a failure
+    ends it with the exception's first line as the last line of its standard error."""
+    try:
+        build(pickle.load(sys.stdin.buffer))
+    except Exception as exc:
+        lines = str(exc).strip().splitlines()
+        sys.exit(f"{type(exc).__name__}: {lines[0] if lines else ''}")
+
+
+class PackageBuilds:
+    """The builds this process started: at most `MAX_BUILDS` running, the others queued. Each
+    running one has a thread that waits for its child and calls the job's `done(reason)`
+    ("" when built)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._queued: list[tuple[BuildJob, Callable[[str], None]]] = []
+        self._running: dict[Path, threading.Thread] = {}
+        self._started: set[Path] = set()
+
+    def start(self, job: BuildJob, done: Callable[[str], None]) -> None:
+        """Build `job` in a child process (once per package path in this process)."""
+        with self._lock:
+            if job.path in self._started:
+                return
+            self._started.add(job.path)
+            self._queued.append((job, done))
+            self._next()
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._queued) + len(self._running)
+
+    def wait(self, should_stop: Callable[[], bool] = lambda: False, poll_s: float = 0.2) -> bool:
+        """Until every build started has ended (True) or `should_stop()` (False)."""
+        while self.pending():
+            if should_stop():
+                return False
+            time.sleep(poll_s)
+        return True
+
+    def _next(self) -> None:
+        """Start queued builds while fewer than `MAX_BUILDS` run (under the lock)."""
+        while self._queued and len(self._running) < MAX_BUILDS:
+            job, done = self._queued.pop(0)
+            thread = threading.Thread(target=self._run, args=(job, done), name=f"build-{job.name}", daemon=True)
+            self._running[job.path] = thread
+            thread.start()
+
+    def _run(self, job: BuildJob, done: Callable[[str], None]) -> None:
+        reason = ""
+        try:
+            reason = _child_build(job)
+        except Exception as exc:  # (the child could not even be started)
+            reason = f"its build could not be started: {exc}"
+        finally:
+            with self._lock:
+                del self._running[job.path]
+                self._next()
+        done(reason)
+
+
+def _child_build(job: BuildJob) -> str:
+    """Run `job` in a child process; -> "" when built, else why not (a `.failed` note written
+    where the same build would fail again)."""
+    began = time.monotonic()
+    child = subprocess.Popen(
+        [sys.executable, "-c", BUILDER],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,  # an interrupt of the run (the terminal's process group) lets it finish
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},  # it imports what this process can
+    )
+    try:
+        _, errors = child.communicate(pickle.dumps(job), timeout=BUILD_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.communicate()
+        job.partial(child.pid).unlink(missing_ok=True)
+        return _failed(job, f"its build did not finish within {BUILD_TIMEOUT_S} s")
+    job.partial(child.pid).unlink(missing_ok=True)  # (a child killed mid-write leaves it)
+    if child.returncode == 0:
+        log.info("%s built ahead of time in %.0f s: later runs load it", job.name, time.monotonic() - began)
+        return ""
+    if child.returncode < 0:
+        killed = signal.Signals(-child.returncode)
+        compiler = f"; built with CXX={os.environ['CXX']}" if "CXX" in os.environ else ""  # (the H200's cause)
+        why = f"its build died of {killed.name}{compiler}"
+        return why if killed in INTERRUPTED else _failed(job, why)
+    lines = errors.decode(errors="replace").strip().splitlines()
+    return _failed(job, lines[-1] if lines else f"its build exited with {child.returncode}")
+
+
+def _failed(job: BuildJob, why: str) -> str:
+    atomic_write_text(job.failed_note, why + "\n")
+    return why
+
+
+BUILDS = PackageBuilds()  # this process's
+
+
+def wait_for_builds(should_stop: Callable[[], bool] = lambda: False) -> None:
+    """At the end of a run: wait for the packages still being built, saying so; `should_stop()`
+    leaves them to finish on their own (each in a session of its own)."""
+    pending = BUILDS.pending()
+    if not pending:
+        return
+    log.info(
+        "waiting for %d align iteration package(s) still being built for later runs (an interrupt leaves them to finish alone)",
+        pending,
+    )
+    if not BUILDS.wait(should_stop):
+        log.info("left %d package build(s) to finish in the background", BUILDS.pending())
