@@ -53,6 +53,10 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "process-odometry-loops": ("slam.schedule=process", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),
     "sequential-odometry-loops": ("slam.schedule=sequential", "tracking.odometry=features", "loops.enabled=true"),
+    "sequential-odometry-adjust": ("slam.schedule=sequential", "tracking.odometry=features", "mapping.adjust_window=5"),
+    "sequential-odometry-adjust-loops": (
+        "slam.schedule=sequential", "tracking.odometry=features", "mapping.adjust_window=5", "loops.enabled=true",
+    ),
 }  # fmt: skip
 
 
