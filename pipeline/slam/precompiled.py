@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 import logging
+import os
 import sys
 import types
 from collections.abc import Callable, Sequence
@@ -77,9 +78,10 @@ def describe(leaf: Any) -> str:
 
 def package_key(name: str, source: str, signature: Sequence[Any]) -> str:
     """What a package depends on besides the build (the cache folder's name holds torch, CUDA and
-    the device kind): the function's name and source digest, and `signature` (the arguments'
-    structure and each one `describe`d)."""
-    parts = [name, source, sys.version.split()[0], *map(str, signature)]
+    the device kind): the function's name and source digest, `signature` (the arguments'
+    structure and each one `describe`d), and the C++ compiler it is built with (`CXX`: another
+    compiler is tried afresh where one failed)."""
+    parts = [name, source, sys.version.split()[0], os.environ.get("CXX", ""), *map(str, signature)]
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -81,7 +82,7 @@ def test_a_package_is_built_beside_the_run_and_loaded_by_a_later_one(tmp_path: P
     assert [p.suffix for p in tmp_path.iterdir()] == [".pt2"]  # no partial file left beside it
 
 
-def test_a_package_depends_on_shapes_constants_and_source() -> None:
+def test_a_package_depends_on_shapes_constants_source_and_compiler(monkeypatch: pytest.MonkeyPatch) -> None:
     state, source, target = _level()
     digest = source_digest(lm_iteration)
 
@@ -95,6 +96,8 @@ def test_a_package_depends_on_shapes_constants_and_source() -> None:
     assert same != key(state, SourcePoints(*(field[:10] for field in source)), target, PARAMS)
     assert same != key(state, source, target, PARAMS, code="another source")
     assert same != key(state, source, target, PARAMS, name="lm_iterations")
+    monkeypatch.setenv("CXX", os.environ.get("CXX", "g++") + "-13")
+    assert same != key(state, source, target, PARAMS)
     assert {"pipeline.geometry", "pipeline.slam.tracking.rgbd_alignment"} <= set(source_modules(lm_iteration))
 
 
