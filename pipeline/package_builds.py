@@ -211,7 +211,11 @@ def _child_build(job: BuildJob) -> str:
 
 
 def _failed(job: BuildJob, why: str) -> str:
-    atomic_write_text(job.failed_note, why + "\n")
+    """`why`, noted beside the package for later runs where the folder takes it."""
+    try:
+        atomic_write_text(job.failed_note, why + "\n")
+    except OSError as exc:
+        log.debug("could not note why %s was not built: %s", job.path.name, exc)
     return why
 
 

@@ -123,9 +123,13 @@ class Precompiled(Generic[State]):
         if path.exists():
             return self._load(path, leaves, tree_flatten(args[0])[1])
         if job.failed_note.exists():
-            self._refuse(job.failed_note.read_text().strip())
+            self._refuse(job.failed_note.read_text(errors="replace").strip())
         elif not self.failed:
-            self.folder.mkdir(parents=True, exist_ok=True)
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:  # (a cache folder this user cannot write: nothing is built)
+                self._refuse(f"its cache folder cannot be made: {exc}")
+                return None
             BUILDS.start(job, self._built)
         return None
 

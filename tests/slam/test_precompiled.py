@@ -197,3 +197,15 @@ def test_the_end_of_a_run_waits_for_its_builds_unless_interrupted(
     assert builds.pending() == int(stopped)
     assert ("left 1 package build(s) to finish in the background" in caplog.text) == stopped
     builds.wait()
+
+
+def test_a_cache_folder_that_cannot_be_made_means_the_fallback(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    blocked = tmp_path / "file"
+    blocked.write_text("not a folder")
+    precompiled = Precompiled(double, "double", blocked / "aoti", fallback=lambda s: s * 3)
+    with caplog.at_level(logging.WARNING, logger="gsplatam"):
+        assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
+    assert BUILDS.pending() == 0
+    assert "its cache folder cannot be made" in caplog.text
