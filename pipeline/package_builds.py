@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
-from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
+from torch.utils._pytree import TreeSpec, tree_flatten, tree_leaves, tree_unflatten
 
 from pipeline.io.files.atomic import atomic_write_text
 
@@ -51,13 +51,16 @@ class TensorMeta(NamedTuple):
     stride: tuple[int, ...]
     dtype: torch.dtype
     device: str
+    requires_grad: bool = False  # (a joint build differentiates its result with respect to it)
 
     @staticmethod
     def of(tensor: torch.Tensor) -> TensorMeta:
-        return TensorMeta(tuple(tensor.shape), tuple(tensor.stride()), tensor.dtype, str(tensor.device))
+        meta = tuple(tensor.shape), tuple(tensor.stride()), tensor.dtype, str(tensor.device), tensor.requires_grad
+        return TensorMeta(*meta)
 
     def example(self) -> torch.Tensor:
-        return torch.empty_strided(self.shape, self.stride, dtype=self.dtype, device=self.device).zero_()
+        example = torch.empty_strided(self.shape, self.stride, dtype=self.dtype, device=self.device).zero_()
+        return example.requires_grad_(self.requires_grad)
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,7 @@ class BuildJob:
     path: Path
     leaves: tuple[Any, ...]
     spec: TreeSpec
+    joint: bool = False  # `fn` returns a scalar: the package gives it and its gradients (`_JointCall`)
 
     @property
     def failed_note(self) -> Path:
@@ -82,20 +86,41 @@ class BuildJob:
 
 class _FlatCall(torch.nn.Module):
     """`fn` over flat tensors: the export's input and output are tensors only (a package keeps
-    no Python structure); the other arguments are constants of the program."""
+    no Python structure); the other arguments are constants of the program. `fn` returns the
+    structure of its first argument (the caller rebuilds it so), or with `scalar` one tensor."""
 
-    def __init__(self, fn: Callable[..., Any], leaves: Sequence[Any], spec: TreeSpec) -> None:
+    def __init__(self, fn: Callable[..., Any], leaves: Sequence[Any], spec: TreeSpec, scalar: bool) -> None:
         super().__init__()
-        self.fn, self.leaves, self.spec = fn, list(leaves), spec
+        self.fn, self.leaves, self.spec, self.scalar = fn, list(leaves), spec, scalar
 
     def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
         given = iter(tensors)
         leaves = [next(given) if isinstance(leaf, torch.Tensor) else leaf for leaf in self.leaves]
         args = tree_unflatten(leaves, self.spec)
-        out, out_spec = tree_flatten(self.fn(*args))
-        if out_spec != tree_flatten(args[0])[1]:  # (the caller rebuilds the result as its first argument)
-            raise TypeError(f"{self.fn} returns a structure other than its first argument's")
+        result = self.fn(*args)
+        if self.scalar and isinstance(result, torch.Tensor) and result.dim() == 0:
+            return (result,)
+        out, out_spec = tree_flatten(result)
+        if self.scalar or out_spec != tree_flatten(args[0])[1]:
+            wanted = "a scalar tensor" if self.scalar else "its first argument's structure"
+            raise TypeError(f"{self.fn} does not return {wanted}")
         return tuple(out)
+
+
+class _JointCall(torch.nn.Module):
+    """A scalar function's forward and backward in one graph (AOTAutograd's joint graph: an
+    exported program is inference-only, so the backward is traced here, ahead): flat tensors and
+    the result's tangent in, the result and the gradient of each input that requires grad out."""
+
+    def __init__(self, flat: _FlatCall, tensors: tuple[torch.Tensor, ...]) -> None:
+        super().__init__()
+        from torch._functorch.aot_autograd import aot_export_joint_simple
+
+        self.graph = aot_export_joint_simple(flat, tensors, trace_joint=True)
+
+    def forward(self, *tensors_and_tangent: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        *tensors, tangent = tensors_and_tangent
+        return tuple(out for out in tree_leaves(self.graph(list(tensors), [tangent])) if out is not None)
 
 
 def build(job: BuildJob) -> None:
@@ -104,10 +129,17 @@ def build(job: BuildJob) -> None:
 
     leaves = [leaf.example() if isinstance(leaf, TensorMeta) else leaf for leaf in job.leaves]
     tensors = tuple(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))
+    flat = _FlatCall(job.fn, leaves, job.spec, scalar=job.joint)
+    module: torch.nn.Module = flat
+    if job.joint:
+        module = _JointCall(flat, tensors)
+        differentiated = next((t for t in tensors if t.requires_grad), tensors[0])  # the loss's dtype (`Precompiled`)
+        tangent = torch.ones((), dtype=differentiated.dtype, device=differentiated.device)
+        tensors = (*(t.detach() for t in tensors), tangent)
     partial = job.partial(os.getpid())
     try:
         with torch.no_grad():
-            program = torch.export.export(_FlatCall(job.fn, leaves, job.spec), tensors, strict=False)
+            program = torch.export.export(module, tensors, strict=False)
             aoti_compile_and_package(program, package_path=str(partial))
         aoti_load_package(str(partial))  # a library that does not fit this runtime crashes here, not in a run
         os.replace(partial, job.path)

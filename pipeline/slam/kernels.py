@@ -102,19 +102,22 @@ def make_kernels(compiled: bool, compile_grid: bool = True, precompile: bool = F
     ran the H200's tracking 2.3-2.6x slower per frame (bench/NOTES.md, Change 21's outcome).
     `compile_grid` False leaves the grid's batched iteration uncompiled: tracing it under vmap is
     most of a warm start's compile time (bench/NOTES.md, Change 35). `precompile` makes the
-    compiled align iterations AOTInductor packages, loaded in later runs without tracing
-    (`precompiled.py`, Change 36)."""
+    compiled align iterations and the mapping loss (its forward and backward) AOTInductor
+    packages, loaded in later runs without tracing (`precompiled.py`, Changes 36-38); adam's
+    tracking loss stays torch.compile'd (`align` tracks without it)."""
     if not compiled:
         return SlamKernels(tracking_loss, mapping_loss, EAGER_ALIGN)
     device = torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
     persist_compile_cache(device)
     one: AlignIteration = compile_whole(lm_iteration)
     grid: AlignIteration = compile_whole(lm_iterations) if compile_grid else lm_iterations
+    mapping: Callable[..., torch.Tensor] = compile_whole(mapping_loss)
     if precompile:
         folder = compile_cache_folder(device, "aoti")
         one = Precompiled(lm_iteration, "lm_iteration", folder, fallback=one)
         grid = Precompiled(lm_iterations, "lm_iterations", folder, fallback=grid) if compile_grid else grid
-    return SlamKernels(compile_whole(tracking_loss), compile_whole(mapping_loss), AlignKernels(one, grid))
+        mapping = Precompiled(mapping_loss, "mapping_loss", folder, fallback=mapping, joint=True)
+    return SlamKernels(compile_whole(tracking_loss), mapping, AlignKernels(one, grid))
 
 
 EAGER = make_kernels(compiled=False)

@@ -25,6 +25,7 @@ import os
 import sys
 import types
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
@@ -69,10 +70,10 @@ def source_digest(fn: Callable[..., Any]) -> str:
 
 
 def describe(leaf: Any) -> str:
-    """What a package depends on of an argument: a tensor's shape, stride, dtype and device, any
-    other argument's value (baked into the package)."""
+    """What a package depends on of an argument: a tensor's shape, stride, dtype, device and
+    whether it requires grad, any other argument's value (baked into the package)."""
     if isinstance(leaf, torch.Tensor):
-        return f"{tuple(leaf.shape)}:{tuple(leaf.stride())}:{leaf.dtype}:{leaf.device}"
+        return f"{tuple(leaf.shape)}:{tuple(leaf.stride())}:{leaf.dtype}:{leaf.device}:{leaf.requires_grad}"
     return repr(leaf)
 
 
@@ -85,22 +86,49 @@ def package_key(name: str, source: str, signature: Sequence[Any]) -> str:
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
 
 
-Runner = Callable[..., Sequence[torch.Tensor]]
+Runner = Callable[..., Sequence[torch.Tensor | None]]
+
+
+class _PackagedLoss(torch.autograd.Function):
+    """A scalar loss from its joint package (`BuildJob.joint`): one call gives the loss and its
+    gradients for a tangent of 1; the backward scales those by the loss's own gradient."""
+
+    @staticmethod
+    def forward(ctx: Any, runner: Runner, tangent: torch.Tensor, *tensors: torch.Tensor) -> torch.Tensor:
+        loss, *gradients = (out for out in runner(*tensors, tangent) if out is not None)
+        ctx.save_for_backward(*gradients)
+        return loss
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        gradients = iter(ctx.saved_tensors)
+        return None, None, *(next(gradients) * grad if needed else None for needed in ctx.needs_input_grad[2:])
+
+
+@dataclass(frozen=True)
+class _Loaded:
+    runner: Runner
+    state_spec: TreeSpec  # the structure the runner's outputs are put back into (its first argument's)
+    tangent: torch.Tensor | None  # a joint package's: 1, of the loss's dtype, on its device
 
 
 class Precompiled(Generic[State]):
     """`fn(state, *inputs) -> state` (tensors in pytrees, other arguments constants; `fn` at
     module level, for a child process to import) from its AOTInductor package in `folder`,
     built for later runs where missing while `fallback` runs; `built` counts the packages this
-    instance had built, `loaded` those it found."""
+    instance had built, `loaded` those it found. With `joint`, `fn` is a scalar loss instead,
+    differentiable with respect to its inputs that require grad: its package holds the forward
+    and the backward (an exported program has no autograd), and the loss's dtype is that of the
+    first of them."""
 
-    def __init__(self, fn: Callable[..., State], name: str, folder: Path, fallback: Callable[..., State]) -> None:
-        self.fn, self.name, self.folder, self.fallback = fn, name, folder, fallback
+    def __init__(
+        self, fn: Callable[..., State], name: str, folder: Path, fallback: Callable[..., State], joint: bool = False
+    ) -> None:
+        self.fn, self.name, self.folder, self.fallback, self.joint = fn, name, folder, fallback, joint
         self.source = source_digest(fn)
         self.built = self.loaded = 0
         self.failed = False
-        # by signature: the package's runner and the structure of the state it returns (None: the fallback)
-        self._runners: dict[tuple[Any, ...], tuple[Runner, TreeSpec] | None] = {}
+        self._runners: dict[tuple[Any, ...], _Loaded | None] = {}  # by signature (None: the fallback)
 
     def __call__(self, *args: Any) -> State:
         leaves, spec = tree_flatten(args)
@@ -110,16 +138,18 @@ class Precompiled(Generic[State]):
         found = self._runners[signature]
         if found is None:
             return self.fallback(*args)
-        runner, state_spec = found
         tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
-        state: State = tree_unflatten(list(runner(*tensors)), state_spec)
+        if found.tangent is not None:
+            loss: State = _PackagedLoss.apply(found.runner, found.tangent, *tensors)
+            return loss
+        state: State = tree_unflatten(list(found.runner(*tensors)), found.state_spec)
         return state
 
-    def _found(self, signature: tuple[Any, ...], args: tuple[Any, ...]) -> tuple[Runner, TreeSpec] | None:
+    def _found(self, signature: tuple[Any, ...], args: tuple[Any, ...]) -> _Loaded | None:
         """The loaded package for `args` (of `signature`), or None (the fallback; its build started)."""
         leaves, spec = tree_flatten(args)
         path = self.folder / f"{self.name}-{package_key(self.name, self.source, signature)}.pt2"
-        job = BuildJob(self.fn, self.name, path, tuple(_meta(leaf) for leaf in leaves), spec)
+        job = BuildJob(self.fn, self.name, path, tuple(_meta(leaf) for leaf in leaves), spec, self.joint)
         if path.exists():
             return self._load(path, leaves, tree_flatten(args[0])[1])
         if job.failed_note.exists():
@@ -133,10 +163,11 @@ class Precompiled(Generic[State]):
             BUILDS.start(job, self._built)
         return None
 
-    def _load(self, path: Path, leaves: list[Any], state_spec: TreeSpec) -> tuple[Runner, TreeSpec] | None:
+    def _load(self, path: Path, leaves: list[Any], state_spec: TreeSpec) -> _Loaded | None:
         from torch._inductor import aoti_load_package
 
-        device = next((t.device for t in leaves if isinstance(t, torch.Tensor) and t.device.type == "cuda"), None)
+        tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
+        device = next((t.device for t in tensors if t.device.type == "cuda"), None)
         try:
             with DEVICE_WIDE:  # (a load never beside another thread's compiled call or capture)
                 runner: Runner = aoti_load_package(
@@ -146,7 +177,9 @@ class Precompiled(Generic[State]):
             self._refuse(f"its package {path.name} did not load: {exc}")
             return None
         self.loaded += 1
-        return runner, state_spec
+        differentiated = next((t for t in tensors if t.requires_grad), tensors[0])
+        tangent = torch.ones((), dtype=differentiated.dtype, device=differentiated.device) if self.joint else None
+        return _Loaded(runner, state_spec, tangent)
 
     def _built(self, why_not: str) -> None:
         """A build this instance started ended ("": built)."""

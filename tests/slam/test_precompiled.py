@@ -12,6 +12,7 @@ import torch
 from torch.utils._pytree import tree_flatten, tree_leaves
 
 from pipeline.package_builds import BUILDS
+from pipeline.slam.kernels import mapping_loss
 from pipeline.slam.precompiled import Precompiled, describe, package_key, source_digest, source_modules
 from pipeline.slam.tracking.pyramid import rgbd_pyramid
 from pipeline.slam.tracking.rgbd_alignment import (
@@ -37,6 +38,10 @@ def _level() -> tuple[LmState, SourcePoints, TargetMaps]:
     pose = torch.eye(4, dtype=torch.float64)
     pose[0, 3] = 0.01
     return lm_start(pose), source_points(level), target_maps(level)
+
+
+def _never_called(*args: object) -> Any:
+    raise AssertionError("the fallback ran")
 
 
 class Counted:
@@ -209,3 +214,28 @@ def test_a_cache_folder_that_cannot_be_made_means_the_fallback(
         assert torch.equal(precompiled(torch.ones(3)), torch.full((3,), 3.0))
     assert BUILDS.pending() == 0
     assert "its cache folder cannot be made" in caplog.text
+
+
+@pytest.mark.slow
+def test_the_mapping_loss_package_equals_the_loss_in_value_and_gradient(tmp_path: Path) -> None:
+    """The mapping loss (SSIM and L1) from its joint package, forward and backward in one call,
+    against autograd on the plain function, where the observed images need no gradient."""
+    generator = torch.Generator().manual_seed(1)
+    images = [torch.rand(shape, generator=generator) for shape in ((12, 16, 3), (12, 16), (12, 16, 3), (12, 16))]
+    images[3][images[3] < 0.2] = 0  # invalid depth
+    weights = (0.2, 1.0, 0.5)
+
+    def value_and_gradients(loss: Any) -> list[torch.Tensor]:
+        color, depth = (image.clone().requires_grad_(True) for image in images[:2])
+        value = loss(color, depth, *images[2:], *weights)
+        (3.0 * value).backward()  # a gradient other than 1 flows into the loss
+        return [value.detach(), color.grad, depth.grad]
+
+    want = value_and_gradients(mapping_loss)
+    building = Precompiled(mapping_loss, "mapping_loss", tmp_path, fallback=mapping_loss, joint=True)
+    value_and_gradients(building)
+    assert BUILDS.wait() and building.built == 1
+    loaded = Precompiled(mapping_loss, "mapping_loss", tmp_path, fallback=_never_called, joint=True)
+    for got, expected in zip(value_and_gradients(loaded), want):
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    assert loaded.loaded == 1
