@@ -108,9 +108,16 @@ def _images(seed: int) -> tuple[torch.Tensor, ...]:
 
 
 def test_the_compiled_losses_equal_the_eager_ones_in_value_and_gradient() -> None:
+    """Eager, torch.compile'd, and from packages (the mapping loss's joint package, built beside
+    a first call: the tracking loss stays compiled)."""
     render_color, render_depth, silhouette, color, depth = _images(0)
+    building = make_kernels(compiled=True, precompile=True)
+    rc, rd = render_color.clone().requires_grad_(True), render_depth.clone().requires_grad_(True)
+    building.mapping_loss(rc, rd, color, depth, 0.2, 1.0, 0.5)
+    assert BUILDS.wait()
+    packaged = make_kernels(compiled=True, precompile=True)
     values, grads = [], []
-    for kernels in (EAGER, make_kernels(compiled=True)):
+    for kernels in (EAGER, make_kernels(compiled=True), packaged):
         rc = render_color.clone().requires_grad_(True)
         rd = render_depth.clone().requires_grad_(True)
         mapping = kernels.mapping_loss(rc, rd, color, depth, 0.2, 1.0, 0.5)
@@ -118,10 +125,13 @@ def test_the_compiled_losses_equal_the_eager_ones_in_value_and_gradient() -> Non
         (mapping + 1e-3 * tracking).backward()
         values.append((mapping.detach(), tracking.detach(), pixels))
         grads.append((rc.grad, rd.grad))
-    (m0, t0, p0), (m1, t1, p1) = values
-    assert torch.allclose(m0, m1, rtol=1e-5) and torch.allclose(t0, t1, rtol=1e-5) and torch.equal(p0, p1)
-    for g0, g1 in zip(*grads):
-        assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-8)
+    assert isinstance(packaged.mapping_loss, Precompiled) and packaged.mapping_loss.loaded == 1
+    (m0, t0, p0), *others = values
+    for m1, t1, p1 in others:
+        assert torch.allclose(m0, m1, rtol=1e-5) and torch.allclose(t0, t1, rtol=1e-5) and torch.equal(p0, p1)
+    for other in grads[1:]:
+        for g0, g1 in zip(grads[0], other):
+            assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-8)
 
 
 def _device_frames(count: int) -> list[DeviceFrame]:
