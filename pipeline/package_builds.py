@@ -261,7 +261,7 @@ def wait_for_builds(should_stop: Callable[[], bool] = lambda: False) -> None:
     if not pending:
         return
     log.info(
-        "waiting for %d align iteration package(s) still being built for later runs (an interrupt leaves them to finish alone)",
+        "waiting for %d ahead-of-time package(s) still being built for later runs (an interrupt leaves them to finish alone)",
         pending,
     )
     if not BUILDS.wait(should_stop):

@@ -198,7 +198,7 @@ def test_the_end_of_a_run_waits_for_its_builds_unless_interrupted(
     builds.start(package_builds.BuildJob(double, "double", tmp_path / "double.pt2", (), tree_flatten(())[1]), print)
     with caplog.at_level(logging.INFO, logger="gsplatam"):
         package_builds.wait_for_builds(lambda: stopped)
-    assert "waiting for 1 align iteration package(s)" in caplog.text
+    assert "waiting for 1 ahead-of-time package(s)" in caplog.text
     assert builds.pending() == int(stopped)
     assert ("left 1 package build(s) to finish in the background" in caplog.text) == stopped
     builds.wait()
