@@ -75,9 +75,9 @@ run_part() {
     odometry-cabinet) bench "$cabinet" --presets tiny --variants process,process-odometry \
                         --set dataset.width=640 --set dataset.height=480 --stem odometry_cabinet_tiny ;;
     pace-tum) bench "$tum" --presets tiny --variants sequential,process-frame,process-keyframe --stem pace_tiny_tum ;;
-    drift-adjust)  # issue 35: local bundle adjustment at each keyframe (5 covisible), with and without loops; carry as drift-odometry-loops
+    drift-adjust)  # issue 35: local bundle adjustment at each keyframe (5 covisible), with and without loops, and a global one at the end; carry as drift-odometry-loops
               bench "$cabinet" --presets tiny --repeats "${REPEATS:-1}" \
-                --variants ${ADJUST_VARIANTS:-sequential-odometry,sequential-odometry-adjust,sequential-odometry-loops,sequential-odometry-adjust-loops} \
+                --variants ${ADJUST_VARIANTS:-sequential-odometry,sequential-odometry-adjust,sequential-odometry-global,sequential-odometry-loops,sequential-odometry-adjust-loops} \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_adjust_cabinet ;;
     drift-cabinet) bench "$cabinet" --presets tiny --variants process-one-render,process,process-adjust \
                      --set dataset.width=640 --set dataset.height=480 --stem drift_cabinet_tiny ;;

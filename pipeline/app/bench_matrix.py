@@ -54,6 +54,9 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "sequential-odometry": ("slam.schedule=sequential", "tracking.odometry=features"),
     "sequential-odometry-loops": ("slam.schedule=sequential", "tracking.odometry=features", "loops.enabled=true"),
     "sequential-odometry-adjust": ("slam.schedule=sequential", "tracking.odometry=features", "mapping.adjust_window=5"),
+    "sequential-odometry-global": (  # then a global adjustment: every keyframe's pose with the map
+        "slam.schedule=sequential", "tracking.odometry=features", "mapping.final_iters=1000", "mapping.final_pose_lr=2e-3",
+    ),
     "sequential-odometry-adjust-loops": (
         "slam.schedule=sequential", "tracking.odometry=features", "mapping.adjust_window=5", "loops.enabled=true",
     ),

@@ -279,6 +279,7 @@ def validate(config: Config) -> None:
         (mapping.final_iters >= 0, "mapping.final_iters must be >= 0"),
         (mapping.refine_between >= 0, "mapping.refine_between must be >= 0"),
         (mapping.refine_pose_lr >= 0, "mapping.refine_pose_lr must be >= 0 (a learning rate)"),
+        (mapping.final_pose_lr >= 0, "mapping.final_pose_lr must be >= 0 (a learning rate)"),
         (_in_unit(mapping.ssim_weight), "mapping.ssim_weight must be in [0, 1]"),
         (_in_unit(mapping.prune_opacity), "mapping.prune_opacity must be in [0, 1]"),
         (mapping.prune_scale_factor > 0, "mapping.prune_scale_factor must be > 0"),

@@ -144,6 +144,7 @@ class MappingConfig:
     refine_between: int = 0  # sequential schedule at rate=keyframe: view renders of refinement over the keyframes after each frame between keyframes (0: none; one costs 12-14 ms a frame on an H200)
     refine_pose_lr: float = 1e-4  # refinement passes move the keyframes' poses too (Adam step of a twist; 0: fixed)
     final_iters: int = 0  # an offline run ends with this many view renders of refinement over all keyframes
+    final_pose_lr: float = 1e-4  # the final refinement moves the keyframes' poses too (Adam step of a twist; 0: fixed): a global adjustment at 2e-3 (bench/NOTES.md)
     adjust_window: int = 0  # at each keyframe kept, it and the keyframes that see most of it (this many in all) are adjusted: their poses with the map (0: off)
     adjust_iters: int = 200  # an adjustment's view renders at most
     adjust_pose_lr: float = 2e-3  # Adam step of an adjusted keyframe's twist (radians, metres)

@@ -81,9 +81,10 @@ class SplaTAM:
 
     def finish(self, final_renders: int, should_stop: Callable[[], bool] | None = None) -> int:
         """After the last frame: `final_renders` view renders of refinement over every keyframe
-        (`mapping.final_iters`), ending at its next step once `should_stop()`; published. ->
+        (`mapping.final_iters`; their poses at `mapping.final_pose_lr`), ending at its next step
+        once `should_stop()`; published. ->
         the renders done."""
-        return self.backend.refine(final_renders, should_stop, len(self.backend.keyframes))
+        return self.backend.finish(final_renders, should_stop)
 
     @property
     def failure(self) -> str:

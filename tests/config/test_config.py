@@ -101,6 +101,7 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["synthetic.holes=2"], "synthetic.holes must be >= 0 and < 1"),
         (["synthetic.loops=100000"], "synthetic.loops must be 0 to 1000"),
         (["mapping.final_iters=-5"], "mapping.final_iters must be >= 0"),
+        (["mapping.final_pose_lr=-1e-3"], "mapping.final_pose_lr must be >= 0"),
         (["mapping.refine_between=-1"], "mapping.refine_between must be >= 0"),
         (["slam.backend_timeout_s=0"], "slam.backend_timeout_s must be > 0"),
         (["mapping.ssim_weight=1.5"], "mapping.ssim_weight must be in [0, 1]"),

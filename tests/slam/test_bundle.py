@@ -5,6 +5,7 @@ newest one."""
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,12 +17,17 @@ from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scen
 from pipeline.render import Camera, Gaussians, make_renderer
 from pipeline.slam.gaussian_map import concatenate, seed_gaussians
 from pipeline.slam.keyframes import Keyframe
+from pipeline.slam.loops.closer import NoLoopCloser
+from pipeline.slam.mapping.backend import MappingBackend
 from pipeline.slam.mapping.bundle import adjust, covisible
 from pipeline.slam.mapping.window import MapSettings
+from pipeline.slam.sides import backend_settings
+from pipeline.slam.state import BackendState
 
 WIDTH, HEIGHT = 64, 48
 CONFIG = with_dataset_defaults(load_config("tiny", overrides=["mapping.adjust_window=5"]), "replica")
-RENDERER = make_renderer(CONFIG.render, CONFIG.gaussians, torch.device("cpu"))
+CPU = torch.device("cpu")
+RENDERER = make_renderer(CONFIG.render, CONFIG.gaussians, CPU)
 INTRINSICS = torch.from_numpy(default_intrinsics(WIDTH, HEIGHT)).float()
 SCENE = make_scene(0)
 
@@ -97,3 +103,26 @@ def test_the_window_is_the_newest_and_the_keyframes_that_see_most_of_it(window: 
     assert picks[-1] == len(store) - 1 and len(picks) == 3 and 0 not in picks
     assert picks == sorted(picks)
     assert covisible(store, 10, INTRINSICS, 400, torch.Generator().manual_seed(0)) == list(range(1, len(store)))
+
+
+@pytest.mark.parametrize("pose_lr", [0.0, 2e-3], ids=["fixed", "moving"])
+def test_the_final_refinement_moves_every_keyframe_but_the_first_at_its_own_pose_step(
+    window: Window, pose_lr: float
+) -> None:
+    """`mapping.final_pose_lr`, not the refinement passes' `refine_pose_lr` (0 here): 0 keeps every
+    pose; 2e-3 makes the final pass a global adjustment that brings the drifted poses back, the
+    first keyframe (the gauge) the very tensor it was."""
+    world, keyframes, truth = window
+    mapping = replace(CONFIG.mapping, refine_pose_lr=0.0, final_pose_lr=pose_lr)
+    config = replace(CONFIG, mapping=mapping)
+    backend = MappingBackend(backend_settings(config, RENDERER, CPU), NoLoopCloser(), CPU)
+    state = random.Random(0).getstate(), torch.Generator().get_state()
+    backend.restore(BackendState(world, list(keyframes), 1.5, *state, len(keyframes), None, INTRINSICS))
+    assert backend.finish(100) == 100
+    before = centre_errors_mm([k.c2w for k in keyframes], truth)
+    after = centre_errors_mm([k.c2w for k in backend.keyframes], truth)
+    assert backend.keyframes[0].c2w is keyframes[0].c2w
+    if pose_lr == 0:
+        assert all(torch.equal(a.c2w, b.c2w) for a, b in zip(backend.keyframes, keyframes))
+    else:
+        assert sum(after[1:]) < 0.5 * sum(before[1:]), (before, after)

@@ -186,13 +186,20 @@ class MappingBackend:
                 self.gaussians = gathered(self.gaussians, keep)
                 self.loops.kept(keep)
 
-    def refine(self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0) -> int:
+    def finish(self, renders: int, should_stop: Callable[[], bool] | None = None) -> int:
+        """The run's final refinement (`mapping.final_iters`): `renders` view renders over every
+        keyframe, their poses moving at `mapping.final_pose_lr`. -> the renders done."""
+        return self.refine(renders, should_stop, len(self.keyframes), self.mapping.final_pose_lr)
+
+    def refine(
+        self, renders: int, should_stop: Callable[[], bool] | None = None, views: int = 0, pose_lr: float | None = None
+    ) -> int:
         """A refinement pass: `renders` view renders over `views` stored keyframes taken from a
         shuffled cycle through all of them, so that every keyframe is revisited (0: a window of
         at most `mapping.window`, in turn the newest keyframe's covisible window and the next of
-        that cycle); their poses are optimised too (`mapping.refine_pose_lr`; the first keyframe
-        stays: it fixes the map's frame). Publishes the result; `should_stop` ends it early (a
-        frame waits). -> the renders done (0 before the first frame)."""
+        that cycle); their poses are optimised too (at `pose_lr`, default `mapping.refine_pose_lr`;
+        the first keyframe stays: it fixes the map's frame). Publishes the result; `should_stop`
+        ends it early (a frame waits). -> the renders done (0 before the first frame)."""
         if self.gaussians is None or self.intrinsics is None or renders <= 0:
             return 0
         if views:
@@ -202,7 +209,8 @@ class MappingBackend:
             positions = self._covisible_views() if self._local_turn else self._refinement_views(self.mapping.window)
         chosen = [self.keyframes[p] for p in positions]
         fixed = frozenset(i for i, p in enumerate(positions) if p == 0)
-        plan = WindowPlan(renders, should_stop, self.mapping.refine_pose_lr, fixed, self.on_step)
+        pose_lr = self.mapping.refine_pose_lr if pose_lr is None else pose_lr
+        plan = WindowPlan(renders, should_stop, pose_lr, fixed, self.on_step)
         radius, window = self.scene_radius, self.settings.window
         result = optimise_window(self.gaussians, chosen, self.intrinsics, radius, self.rng, window, plan)
         self._optimised(positions, result)

@@ -167,8 +167,8 @@ class MappingLoop:
             self.setup.outbox.put(m.Done())
         elif isinstance(message, m.Finish):
             self._map_waiting(everything=True)
-            views, stop = len(self.backend.keyframes), self.setup.stop_refining.is_set
-            renders = self.backend.refine(message.final_renders, stop, views) if message.final_renders else 0
+            stop = self.setup.stop_refining.is_set
+            renders = self.backend.finish(message.final_renders, stop) if message.final_renders else 0
             if renders:
                 self._publish()
             self.setup.outbox.put(m.Done(renders))
