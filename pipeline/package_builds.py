@@ -11,7 +11,8 @@ loads it: SIGSEGV on the H200 at da7c30a), and only then renames it into place, 
 package in the cache folder has been loaded once on this machine. A build that fails for a
 reason that would fail again (an exception, a crash, a hang past `BUILD_TIMEOUT_S`) leaves a
 `.failed` note beside where the package would be, naming why; later runs read it and do not
-build again (a change of source or shapes is another package and is tried afresh).
+build again (a change of source, shapes or compiler is another package and is tried afresh). A
+`joint` build holds a scalar loss's forward and backward (`_JointCall`).
 
 The job reaches the child on its standard input, pickled: from this process, never from disk.
 """
