@@ -54,6 +54,11 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs
     k = camera.intrinsics
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
     x, y, z = means_c.unbind(-1)
+    # Gaussians nearer than the near plane are culled below, but a depth of 0 among them would
+    # still give infinities whose backward is NaN through the mask, for every mean and the pose
+    # (a global adjustment on the CPU met one after 218 steps): they are divided by 1 instead.
+    z = torch.where(z >= camera.near, z, torch.ones_like(z))
+    depths = means_c[:, 2]
     lim_x_pos = (camera.width - cx) / fx + 0.3 * (0.5 * camera.width / fx)
     lim_x_neg = cx / fx + 0.3 * (0.5 * camera.width / fx)
     lim_y_pos = (camera.height - cy) / fy + 0.3 * (0.5 * camera.height / fy)
@@ -76,12 +81,12 @@ def project(gaussians: Gaussians, camera: Camera, eps2d: float, cutoffs: Cutoffs
         )
         var = torch.stack([cov2d[:, 0, 0], cov2d[:, 1, 1]], -1).clamp(min=0)
         radii = torch.ceil(extent[:, None] * torch.sqrt(var))
-        valid = (z >= camera.near) & (z <= camera.far) & (det > 0) & (opacities >= alpha_min)
+        valid = (depths >= camera.near) & (depths <= camera.far) & (det > 0) & (opacities >= alpha_min)
         valid &= (radii > 0).any(-1)
         valid &= (means2d[:, 0] + radii[:, 0] > 0) & (means2d[:, 0] - radii[:, 0] < camera.width)
         valid &= (means2d[:, 1] + radii[:, 1] > 0) & (means2d[:, 1] - radii[:, 1] < camera.height)
         radii = torch.where(valid[:, None], radii, torch.zeros_like(radii)).to(torch.int32)
-    return {"means2d": means2d, "conics": conics, "depths": z, "opacities": opacities, "radii": radii}
+    return {"means2d": means2d, "conics": conics, "depths": depths, "opacities": opacities, "radii": radii}
 
 
 def exact_capacity(means2d: torch.Tensor, radii: torch.Tensor, grid: TileGrid) -> int:
