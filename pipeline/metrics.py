@@ -34,11 +34,18 @@ def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray,
     return rotation, mu_t - rotation @ mu_s
 
 
-def absolute_trajectory_error(estimated_c2w: np.ndarray, reference_c2w: np.ndarray) -> TrajectoryError:
-    """ATE of camera centres [N, 4, 4] after a rigid (rotation + translation) alignment of the estimate."""
+def aligned_centre_errors(estimated_c2w: np.ndarray, reference_c2w: np.ndarray) -> np.ndarray:
+    """Each camera centre's error [N, 3] metres (estimate minus reference) after the rigid
+    (rotation + translation) alignment of the estimated poses [N, 4, 4] onto the reference."""
     est, ref = estimated_c2w[:, :3, 3], reference_c2w[:, :3, 3]
     rotation, translation = rigid_alignment(est, ref)
-    errors = np.linalg.norm(est @ rotation.T + translation - ref, axis=1)
+    aligned: np.ndarray = est @ rotation.T + translation - ref
+    return aligned
+
+
+def absolute_trajectory_error(estimated_c2w: np.ndarray, reference_c2w: np.ndarray) -> TrajectoryError:
+    """ATE of camera centres [N, 4, 4] after a rigid (rotation + translation) alignment of the estimate."""
+    errors = np.linalg.norm(aligned_centre_errors(estimated_c2w, reference_c2w), axis=1)
     return TrajectoryError(
         rmse_m=float(np.sqrt(np.mean(errors**2))),
         mean_m=float(errors.mean()),
