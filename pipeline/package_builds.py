@@ -199,16 +199,17 @@ class PackageBuilds:
             thread.start()
 
     def _run(self, job: BuildJob, done: Callable[[str], None]) -> None:
-        reason = ""
+        """Build `job`, tell `done`, then count it ended (so that `wait` returns after `done`)."""
         try:
-            reason = _child_build(job)
-        except Exception as exc:  # (the child could not even be started)
-            reason = f"its build could not be started: {exc}"
+            try:
+                reason = _child_build(job)
+            except Exception as exc:  # (the child could not even be started)
+                reason = f"its build could not be started: {exc}"
+            done(reason)
         finally:
             with self._lock:
                 del self._running[job.path]
                 self._next()
-        done(reason)
 
 
 def _child_build(job: BuildJob) -> str:
