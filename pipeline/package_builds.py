@@ -124,6 +124,13 @@ class _JointCall(torch.nn.Module):
         return tuple(out for out in tree_leaves(self.graph(list(tensors), [tangent])) if out is not None)
 
 
+def unit_tangent(tensors: Sequence[torch.Tensor]) -> torch.Tensor:
+    """A joint package's tangent for its loss, 1: of the dtype and on the device of the first of
+    `tensors` that requires grad (the loss's, in the losses made so)."""
+    differentiated = next(t for t in tensors if t.requires_grad)
+    return torch.ones((), dtype=differentiated.dtype, device=differentiated.device)
+
+
 def build(job: BuildJob) -> None:
     """Export, compile and load `job`'s function, then put the package in place (in the child)."""
     from torch._inductor import aoti_compile_and_package, aoti_load_package
@@ -134,9 +141,7 @@ def build(job: BuildJob) -> None:
     module: torch.nn.Module = flat
     if job.joint:
         module = _JointCall(flat, tensors)
-        differentiated = next((t for t in tensors if t.requires_grad), tensors[0])  # the loss's dtype (`Precompiled`)
-        tangent = torch.ones((), dtype=differentiated.dtype, device=differentiated.device)
-        tensors = (*(t.detach() for t in tensors), tangent)
+        tensors = (*(t.detach() for t in tensors), unit_tangent(tensors))
     partial = job.partial(os.getpid())
     try:
         with torch.no_grad():

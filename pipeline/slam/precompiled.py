@@ -8,8 +8,9 @@ folder, one per function, input signature, constant arguments, source and build
 (`package_key`). A missing one is built in a child process (`package_builds`) while this run
 goes on with `fallback` (torch.compile'd) for that signature: the package serves later runs.
 (This run's calls are recorded in CUDA graphs from its first frame, so a package finished
-mid-run would not be called anyway.) An exported program is inference-only, so only functions
-that need no gradient are made so: the align iterations (Gauss-Newton steps).
+mid-run would not be called anyway.) An exported program is inference-only: the align
+iterations (Gauss-Newton steps) need no gradient, and a loss (`joint`) is exported with its
+backward traced ahead, its gradients scaled in an autograd function (`_PackagedLoss`).
 
 A package that failed to build here before (its `.failed` note), or that fails to load, means
 the fallback, said once in the log. A package is native code, as inductor's own cached kernels
@@ -32,7 +33,7 @@ from typing import Any, Generic, TypeVar
 import torch
 from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
 
-from pipeline.package_builds import BUILDS, BuildJob, TensorMeta
+from pipeline.package_builds import BUILDS, BuildJob, TensorMeta, unit_tangent
 from pipeline.slam.cuda_graphs import DEVICE_WIDE
 
 log = logging.getLogger("gsplatam")
@@ -134,7 +135,7 @@ class Precompiled(Generic[State]):
         leaves, spec = tree_flatten(args)
         signature = (spec, *(describe(leaf) for leaf in leaves))
         if signature not in self._runners:
-            self._runners[signature] = self._found(signature, args)
+            self._runners[signature] = self._found(signature, leaves, spec)
         found = self._runners[signature]
         if found is None:
             return self.fallback(*args)
@@ -145,13 +146,13 @@ class Precompiled(Generic[State]):
         state: State = tree_unflatten(list(found.runner(*tensors)), found.state_spec)
         return state
 
-    def _found(self, signature: tuple[Any, ...], args: tuple[Any, ...]) -> _Loaded | None:
-        """The loaded package for `args` (of `signature`), or None (the fallback; its build started)."""
-        leaves, spec = tree_flatten(args)
+    def _found(self, signature: tuple[Any, ...], leaves: list[Any], spec: TreeSpec) -> _Loaded | None:
+        """The loaded package for the arguments `leaves` and `spec` (of `signature`), or None (the
+        fallback; its build started)."""
         path = self.folder / f"{self.name}-{package_key(self.name, self.source, signature)}.pt2"
         job = BuildJob(self.fn, self.name, path, tuple(_meta(leaf) for leaf in leaves), spec, self.joint)
         if path.exists():
-            return self._load(path, leaves, tree_flatten(args[0])[1])
+            return self._load(path, leaves, spec.child(0))  # (the first argument's structure)
         if job.failed_note.exists():
             self._refuse(job.failed_note.read_text(errors="replace").strip())
         elif not self.failed:
@@ -177,9 +178,7 @@ class Precompiled(Generic[State]):
             self._refuse(f"its package {path.name} did not load: {exc}")
             return None
         self.loaded += 1
-        differentiated = next((t for t in tensors if t.requires_grad), tensors[0])
-        tangent = torch.ones((), dtype=differentiated.dtype, device=differentiated.device) if self.joint else None
-        return _Loaded(runner, state_spec, tangent)
+        return _Loaded(runner, state_spec, unit_tangent(tensors) if self.joint else None)
 
     def _built(self, why_not: str) -> None:
         """A build this instance started ended ("": built)."""
