@@ -12,7 +12,11 @@ package in the cache folder has been loaded once on this machine. A build that f
 reason that would fail again (an exception, a crash, a hang past `BUILD_TIMEOUT_S`) leaves a
 `.failed` note beside where the package would be, naming why; later runs read it and do not
 build again (a change of source, shapes or compiler is another package and is tried afresh). A
-`joint` build holds a scalar loss's forward and backward (`_JointCall`).
+`joint` build holds a scalar loss's forward and backward (`_JointCall`). A child claims its
+package first (a `.building` file naming it): the tracking and mapping processes want the same
+packages at the same moment, and the second child to claim one leaves it to the first
+(`BUILT_ELSEWHERE`). A child notes an exception's failure itself, so that a build that outlives
+its run (the mapping process ends before its builds) still spares later runs the same failure.
 
 The job reaches the child on its standard input, pickled: from this process, never from disk.
 """
@@ -43,6 +47,8 @@ BUILDER = "from pipeline.package_builds import build_from_stdin; build_from_stdi
 BUILD_TIMEOUT_S = 1800  # one build on two busy CPU cores; a hang past it is a failure
 MAX_BUILDS = max(1, (os.cpu_count() or 2) // 2)  # each holds about one core (and, on CUDA, a context)
 INTERRUPTED = {signal.SIGINT, signal.SIGTERM, signal.SIGKILL, signal.SIGHUP}  # a build stopped, not failed
+ELSEWHERE_EXIT = 75  # a child's exit status where another child holds the package's claim
+BUILT_ELSEWHERE = "another process is building it"  # what `done` is told then: not a failure
 
 
 class TensorMeta(NamedTuple):
@@ -79,6 +85,11 @@ class BuildJob:
     @property
     def failed_note(self) -> Path:
         return self.path.with_suffix(".failed")
+
+    @property
+    def claim(self) -> Path:
+        """Held by the child building the package (its process id inside) while it builds."""
+        return self.path.with_suffix(".building")
 
     def partial(self, pid: int) -> Path:
         """Where the child `pid` writes the package until it has loaded it (AOTInductor wants .pt2)."""
@@ -131,8 +142,56 @@ def unit_tangent(tensors: Sequence[torch.Tensor]) -> torch.Tensor:
     return torch.ones((), dtype=differentiated.dtype, device=differentiated.device)
 
 
+class ClaimedElsewhere(Exception):
+    """Another living process builds this package."""
+
+
+def claim(job: BuildJob) -> None:
+    """Take `job`'s claim for this process, or raise `ClaimedElsewhere`. A claim whose process
+    has ended, or older than `BUILD_TIMEOUT_S` (its process id may have been reused), is stale
+    and taken over."""
+    for attempt in range(2):
+        try:
+            descriptor = os.open(job.claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if attempt or _claim_is_live(job.claim):
+                raise ClaimedElsewhere(str(job.claim)) from None
+            job.claim.unlink(missing_ok=True)
+            continue
+        with os.fdopen(descriptor, "w") as claimed:
+            claimed.write(f"{os.getpid()}\n")
+        return
+
+
+def _claim_is_live(path: Path) -> bool:
+    try:
+        holder, age = path.read_text().strip(), time.time() - path.stat().st_mtime
+    except OSError:  # (released meanwhile)
+        return False
+    if age > BUILD_TIMEOUT_S:
+        return False
+    if not holder.isdigit():  # (its holder is writing it)
+        return True
+    try:
+        os.kill(int(holder), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # (another user's process: alive)
+        pass
+    return True
+
+
 def build(job: BuildJob) -> None:
-    """Export, compile and load `job`'s function, then put the package in place (in the child)."""
+    """Claim, export, compile and load `job`'s function, then put the package in place (in the
+    child)."""
+    claim(job)
+    try:
+        _build_claimed(job)
+    finally:
+        job.claim.unlink(missing_ok=True)
+
+
+def _build_claimed(job: BuildJob) -> None:
     from torch._inductor import aoti_compile_and_package, aoti_load_package
 
     leaves = [leaf.example() if isinstance(leaf, TensorMeta) else leaf for leaf in job.leaves]
@@ -156,11 +215,14 @@ def build(job: BuildJob) -> None:
 def build_from_stdin() -> None:
     """A child's whole work: the job pickled on standard input (by its parent), built; a failure
     ends it with the exception's first line as the last line of its standard error."""
+    job: BuildJob = pickle.load(sys.stdin.buffer)
     try:
-        build(pickle.load(sys.stdin.buffer))
+        build(job)
+    except ClaimedElsewhere:
+        sys.exit(ELSEWHERE_EXIT)
     except Exception as exc:
         lines = str(exc).strip().splitlines()
-        sys.exit(f"{type(exc).__name__}: {lines[0] if lines else ''}")
+        sys.exit(_failed(job, f"{type(exc).__name__}: {lines[0] if lines else ''}"))
 
 
 class PackageBuilds:
@@ -240,6 +302,8 @@ def _child_build(job: BuildJob) -> str:
     if child.returncode == 0:
         log.info("%s built ahead of time in %.0f s: later runs load it", job.name, time.monotonic() - began)
         return ""
+    if child.returncode == ELSEWHERE_EXIT:
+        return BUILT_ELSEWHERE
     if child.returncode < 0:
         killed = signal.Signals(-child.returncode)
         compiler = f"; built with CXX={os.environ['CXX']}" if "CXX" in os.environ else ""  # (the H200's cause)

@@ -33,7 +33,7 @@ from typing import Any, Generic, TypeVar
 import torch
 from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
 
-from pipeline.package_builds import BUILDS, BuildJob, TensorMeta, unit_tangent
+from pipeline.package_builds import BUILDS, BUILT_ELSEWHERE, BuildJob, TensorMeta, unit_tangent
 from pipeline.slam.cuda_graphs import DEVICE_WIDE
 
 log = logging.getLogger("gsplatam")
@@ -181,8 +181,10 @@ class Precompiled(Generic[State]):
         return _Loaded(runner, state_spec, unit_tangent(tensors) if self.joint else None)
 
     def _built(self, why_not: str) -> None:
-        """A build this instance started ended ("": built)."""
-        if why_not:
+        """A build this instance started ended ("": built; `BUILT_ELSEWHERE`: by another process)."""
+        if why_not == BUILT_ELSEWHERE:
+            log.debug("%s is being built ahead of time by another process", self.name)
+        elif why_not:
             self._refuse(why_not)
         else:
             self.built += 1

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +14,8 @@ import pytest
 import torch
 from torch.utils._pytree import tree_flatten, tree_leaves
 
-from pipeline.package_builds import BUILDS
+from pipeline import package_builds
+from pipeline.package_builds import BUILDS, BUILT_ELSEWHERE, BuildJob, ClaimedElsewhere, claim
 from pipeline.slam.kernels import mapping_loss
 from pipeline.slam.precompiled import Precompiled, describe, package_key, source_digest, source_modules
 from pipeline.slam.tracking.pyramid import rgbd_pyramid
@@ -184,6 +188,67 @@ def test_builds_run_at_most_max_builds_at_once(tmp_path: Path, monkeypatch: pyte
         builds.start(job, ended.append)
     assert builds.wait()
     assert len(ended) == 5 and all(why in ("running 1", "running 2") for why in ended), ended
+
+
+def _job(path: Path, fn: Any = double, *args: Any) -> BuildJob:
+    leaves, spec = tree_flatten(args)
+    return BuildJob(fn, fn.__name__, path, tuple(package_builds.TensorMeta.of(leaf) for leaf in leaves), spec)
+
+
+def test_a_package_another_process_is_building_is_left_to_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The tracking and mapping processes want the same packages at once: a child that finds a
+    living process's claim leaves the build to it, which is no failure (nothing noted, nothing
+    said), and the claim stays its holder's."""
+    job = _job(tmp_path / "double.pt2", double, torch.ones(3))
+    job.claim.write_text(f"{os.getpid()}\n")  # (this process: alive)
+    builds = package_builds.PackageBuilds()
+    ended: list[str] = []
+    builds.start(job, ended.append)
+    assert builds.wait()
+    assert ended == [BUILT_ELSEWHERE]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["double.building"]
+    assert job.claim.read_text() == f"{os.getpid()}\n"
+    precompiled = Precompiled(double, "double", tmp_path, fallback=lambda s: s * 3)
+    with caplog.at_level(logging.DEBUG, logger="gsplatam"):
+        precompiled._built(BUILT_ELSEWHERE)
+    assert not precompiled.failed and precompiled.built == 0
+    assert "could not be compiled ahead of time" not in caplog.text
+
+
+def _ended_process_id() -> int:
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+@pytest.mark.parametrize("stale", ["ended", "too-old", "too-old-unwritten"])
+def test_a_stale_claim_is_taken_over_and_a_live_one_is_not(stale: str, tmp_path: Path) -> None:
+    job = _job(tmp_path / "double.pt2")
+    job.claim.write_text(
+        "" if stale == "too-old-unwritten" else f"{_ended_process_id() if stale == 'ended' else os.getpid()}\n"
+    )
+    if stale.startswith("too-old"):
+        old = job.claim.stat().st_mtime - package_builds.BUILD_TIMEOUT_S - 1
+        os.utime(job.claim, (old, old))
+    claim(job)
+    assert job.claim.read_text() == f"{os.getpid()}\n"
+    for live in (f"{os.getpid()}\n", ""):  # a living holder, or one writing its claim now
+        job.claim.write_text(live)
+        with pytest.raises(ClaimedElsewhere):
+            claim(job)
+
+
+def test_a_build_notes_its_failure_itself_for_runs_after_its_own_has_ended(tmp_path: Path) -> None:
+    """The mapping process may end before its builds do: the child, with no parent left to
+    listen, writes the note that spares later runs the same failure, and releases its claim."""
+    job = _job(tmp_path / "branching.pt2", branching, torch.ones(3), torch.ones(3))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    child = subprocess.run(
+        [sys.executable, "-c", package_builds.BUILDER], input=pickle.dumps(job), capture_output=True, env=env
+    )
+    assert child.returncode == 1
+    assert job.failed_note.read_text().strip() == child.stderr.decode().strip().splitlines()[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["branching.failed"]
 
 
 @pytest.mark.parametrize("stopped", [False, True], ids=["waits", "is-interrupted"])
