@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import subprocess
+import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +34,19 @@ def _run_argv(dataset: Path, output: Path, extra: list[str]) -> list[str]:
 
 def _saved_rows(folder: Path) -> list[int]:
     return [int(line.split(",")[0]) for line in (folder / "frames.csv").read_text().splitlines()[1:]]
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_compiler_is_imported_before_the_mapping_thread_starts(compiled: bool) -> None:
+    """Two threads importing torch's compiler at once deadlock (the H200 at 055e532): the tracking
+    thread imports what either side's first compile would, and only the compiler a run uses."""
+    probe = (
+        "import sys, torch; from pipeline.slam.process.mapping_thread import import_the_compiler; "
+        "wanted = ('torch._dynamo', 'torch._inductor.compile_fx'); before = [m in sys.modules for m in wanted]; "
+        f"import_the_compiler({compiled}); print(before, [m in sys.modules for m in wanted])"
+    )
+    said = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip()
+    assert said == f"[False, False] [True, {compiled}]"
 
 
 def test_the_lock_takes_multiprocessing_timeouts() -> None:
