@@ -46,6 +46,10 @@ log = logging.getLogger("gsplatam")
 BUILDER = "from pipeline.package_builds import build_from_stdin; build_from_stdin()"
 BUILD_TIMEOUT_S = 1800  # one build on two busy CPU cores; a hang past it is a failure
 MAX_BUILDS = max(1, (os.cpu_count() or 2) // 2)  # each holds about one core (and, on CUDA, a context)
+# Inductor compiles a graph's kernels in a pool of workers, one per core (at most 32) unless told:
+# MAX_BUILDS builds with a pool each would put 8 x 16 workers on the H200 host's 16 cores, beside
+# the run's own compiles. Each build's pool is two workers, its share of the cores.
+BUILD_COMPILE_THREADS = "2"
 INTERRUPTED = {signal.SIGINT, signal.SIGTERM, signal.SIGKILL, signal.SIGHUP}  # a build stopped, not failed
 ELSEWHERE_EXIT = 75  # a child's exit status where another child holds the package's claim
 BUILT_ELSEWHERE = "another process is building it"  # what `done` is told then: not a failure
@@ -289,7 +293,11 @@ def _child_build(job: BuildJob) -> str:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         start_new_session=True,  # an interrupt of the run (the terminal's process group) lets it finish
-        env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},  # it imports what this process can
+        env={
+            "TORCHINDUCTOR_COMPILE_THREADS": BUILD_COMPILE_THREADS,  # (unless the user set it)
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join(p for p in sys.path if p),  # it imports what this process can
+        },
     )
     try:
         _, errors = child.communicate(pickle.dumps(job), timeout=BUILD_TIMEOUT_S)

@@ -215,6 +215,24 @@ def test_a_package_another_process_is_building_is_left_to_it(tmp_path: Path, cap
     assert "could not be compiled ahead of time" not in caplog.text
 
 
+@pytest.mark.parametrize("set_by_user", [None, "5"])
+def test_each_build_compiles_with_its_share_of_the_cores(
+    set_by_user: str | None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(
+        package_builds, "BUILDER", "import os; raise SystemExit(os.environ['TORCHINDUCTOR_COMPILE_THREADS'])"
+    )
+    if set_by_user is None:
+        monkeypatch.delenv("TORCHINDUCTOR_COMPILE_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("TORCHINDUCTOR_COMPILE_THREADS", set_by_user)
+    builds = package_builds.PackageBuilds()
+    ended: list[str] = []
+    builds.start(_job(tmp_path / "double.pt2"), ended.append)
+    assert builds.wait()
+    assert ended == [set_by_user or package_builds.BUILD_COMPILE_THREADS]
+
+
 def _ended_process_id() -> int:
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     child.wait()
