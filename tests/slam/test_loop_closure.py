@@ -174,10 +174,11 @@ def test_compiled_kernels_are_warmed_once_at_the_first_keyframe_from_one_start_a
     compiled_stand_in = AlignKernels(counting("one", EAGER_ALIGN.one), counting("batch", EAGER_ALIGN.batch))
     loops = LoopSearch(CONFIG, TRACKING, compiled_stand_in)
     first = loop_sequence.keyframes[:1]
-    loops.warm_up(first, loop_sequence.intrinsics)
+    assert loops.warm_up(first, loops.kept(first, loop_sequence.intrinsics), loop_sequence.intrinsics)
     assert ("one", 1) in starts_seen and ("batch", 9) in starts_seen  # both iterations, at the grid's nine starts
     warmed = len(starts_seen)
-    loops.warm_up(loop_sequence.keyframes[:2], loop_sequence.intrinsics)
+    two = loop_sequence.keyframes[:2]
+    assert not loops.warm_up(two, loops.kept(two, loop_sequence.intrinsics), loop_sequence.intrinsics)
     assert len(starts_seen) == warmed  # once a run
 
 

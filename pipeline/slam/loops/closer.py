@@ -199,10 +199,11 @@ class LoopCloser:
         """The newest of `keyframes` (the store, oldest first) was just kept: its node and
         odometry edge, then the loop search; -> the correction when a loop is closed. The
         search's warm-up (the first keyframe's, `LoopSearch.warm_up`) is not counted as a search."""
-        self.search.warm_up(keyframes, intrinsics)
         waited = queued_work_done(keyframes[-1].depth.device)
         started = time.perf_counter()
         sources = self.search.kept(keyframes, intrinsics)
+        if self.search.warm_up(keyframes, sources, intrinsics):
+            started = time.perf_counter()
         self._add_node(keyframes, sources, intrinsics)
         return self._closed(keyframes, self._detect(keyframes, sources, intrinsics, started, waited), started)
 

@@ -51,23 +51,23 @@ class LoopSearch:
         self.views.update(keyframes, intrinsics)
         return source_pyramid(current.color, current.depth, intrinsics, levels)
 
-    def warm_up(self, keyframes: list[Keyframe], intrinsics: torch.Tensor) -> None:
+    def warm_up(self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor) -> bool:
         """Once, before the first search with compiled kernels: the newest of `keyframes`
-        verified against itself from one start and from the grid of starts, its result dropped, so
-        that the verification's iterations compile at this run's sizes now, not at the first
-        candidate in the middle of the run. Under `process` the mapping process compiles its own
-        copies: with loops on the cabinet its longest item took 22.9 s against 14.2 s without
-        (a60276b)."""
+        (`sources`: its pyramid, from `kept`) verified against itself from one start and from the
+        grid of starts, its result dropped, so that the verification's iterations compile at this
+        run's sizes now, not at the first candidate in the middle of the run. Under `process` the
+        mapping process compiles its own copies: with loops on the cabinet its longest item took
+        22.9 s against 14.2 s without (a60276b). -> whether it ran (the first call only)."""
         if self._warmed:
-            return
+            return False
         self._warmed = True
-        sources = self.kept(keyframes, intrinsics)
         identity = torch.eye(4, dtype=torch.float64)
         for starts in (identity, grid_around(identity, self.config.appearance_offset_m)):
             starts = starts.to(sources[0].points.device)
             verify(
                 sources, self.views, keyframes[-1], starts, intrinsics, self.config, self.tracking, kernels=self.kernels
             )
+        return True
 
     def odometry(
         self, keyframes: list[Keyframe], sources: list[SourcePoints], intrinsics: torch.Tensor
