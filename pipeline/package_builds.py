@@ -13,9 +13,10 @@ reason that would fail again (an exception, a crash, a hang past `BUILD_TIMEOUT_
 `.failed` note beside where the package would be, naming why; later runs read it and do not
 build again (a change of source, shapes or compiler is another package and is tried afresh). A
 `joint` build holds a scalar loss's forward and backward (`_JointCall`). A child claims its
-package first (a `.building` file naming it): the tracking and mapping processes want the same
-packages at the same moment, and the second child to claim one leaves it to the first
-(`BUILT_ELSEWHERE`). A child notes an exception's failure itself, so that a build that outlives
+package first (a `.building` file naming it): with loops on, the mapping process's loop search
+wants the tracking process's align iterations at the same sizes and the same moment (the first
+keyframe), as do two runs on one machine, and the second child to claim one leaves it to the
+first (`BUILT_ELSEWHERE`). A child notes an exception's failure itself, so that a build that outlives
 its run (the mapping process ends before its builds) still spares later runs the same failure.
 
 The job reaches the child on its standard input, pickled: from this process, never from disk.

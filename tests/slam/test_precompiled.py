@@ -196,8 +196,8 @@ def _job(path: Path, fn: Any = double, *args: Any) -> BuildJob:
 
 
 def test_a_package_another_process_is_building_is_left_to_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """The tracking and mapping processes want the same packages at once: a child that finds a
-    living process's claim leaves the build to it, which is no failure (nothing noted, nothing
+    """The loop search of the mapping process wants the tracking process's packages at once: a
+    child that finds a living process's claim leaves the build to it, which is no failure (nothing noted, nothing
     said), and the claim stays its holder's."""
     job = _job(tmp_path / "double.pt2", double, torch.ones(3))
     job.claim.write_text(f"{os.getpid()}\n")  # (this process: alive)
