@@ -264,6 +264,8 @@ def validate(config: Config) -> None:
     tracking, mapping, loops = config.tracking, config.mapping, config.loops
     checks = [
         (config.slam.backend_timeout_s > 0, "slam.backend_timeout_s must be > 0"),
+        (config.gaussians.seed_scale > 0, "gaussians.seed_scale must be > 0 (footprints of a pixel)"),
+        (0 < config.gaussians.seed_opacity < 1, "gaussians.seed_opacity must be in (0, 1)"),
         (dataset.depth_scale >= 0, "dataset.depth_scale must be > 0 (depth units per metre; 0: by layout)"),
         (
             len(dataset.depth_range_m) == 0

@@ -219,6 +219,8 @@ class GaussianConfig:
 
     kind: GaussianKind = "3d"  # 3d Gaussians, or 2d (flat discs, surfels)
     isotropic: bool = True  # one scale per Gaussian (SplaTAM) instead of three
+    seed_scale: float = 1.0  # a new Gaussian's scale in footprints of its pixel (depth / focal length; SplaTAM: 1)
+    seed_opacity: float = 0.5  # a new Gaussian's opacity (SplaTAM: 0.5)
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import fields
 
 import torch
@@ -22,8 +23,11 @@ def seed_gaussians(
     """One Gaussian per pixel of `mask` [H, W] (SplaTAM's initialisation).
 
     colour [H, W, 3] in [0, 1], depth [H, W] metres, camera-to-world [4, 4]. Mean: the
-    back-projected pixel centre; colour: the pixel's; identity rotation; opacity 0.5;
-    scale: depth / mean focal length (one pixel's footprint), repeated when anisotropic.
+    back-projected pixel centre; colour: the pixel's; identity rotation; opacity
+    `config.seed_opacity`; scale: `config.seed_scale` footprints of the pixel (depth / mean
+    focal length), repeated when anisotropic. SplaTAM's seeds (one footprint, opacity 0.5)
+    overlap their neighbours so much that a render of them composites nearer neighbours first
+    and its depth comes out short on slanted surfaces (bench/NOTES.md, Change 40).
     """
     u, v = pixel_grid(depth.shape[0], depth.shape[1], depth.device)
     pixels = mask.reshape(-1).nonzero()[:, 0]  # one read-back of the count, shared by every gather
@@ -31,7 +35,7 @@ def seed_gaussians(
     means = backproject(u.reshape(-1)[pixels], v.reshape(-1)[pixels], z, intrinsics, c2w)
     n = means.shape[0]
     focal = (intrinsics[0, 0] + intrinsics[1, 1]) / 2
-    log_scale = torch.log(z / focal)[:, None]
+    log_scale = torch.log(config.seed_scale * z / focal)[:, None]
     axes = 1 if config.isotropic else 3
     quats = torch.zeros(n, 4, device=depth.device)
     quats[:, 0] = 1.0
@@ -39,7 +43,7 @@ def seed_gaussians(
         means=means,
         quats=quats,
         log_scales=log_scale.expand(-1, axes).contiguous(),
-        opacity_logits=torch.zeros(n, device=depth.device),
+        opacity_logits=torch.full((n,), math.log(config.seed_opacity / (1 - config.seed_opacity)), device=depth.device),
         colors=color.reshape(-1, 3)[pixels],
     )
 

@@ -104,6 +104,8 @@ def test_toml_file_round_trip(tmp_path) -> None:
         (["mapping.final_pose_lr=-1e-3"], "mapping.final_pose_lr must be >= 0"),
         (["mapping.refine_between=-1"], "mapping.refine_between must be >= 0"),
         (["slam.backend_timeout_s=0"], "slam.backend_timeout_s must be > 0"),
+        (["gaussians.seed_scale=0"], "gaussians.seed_scale must be > 0"),
+        (["gaussians.seed_opacity=1"], "gaussians.seed_opacity must be in (0, 1)"),
         (["mapping.ssim_weight=1.5"], "mapping.ssim_weight must be in [0, 1]"),
         (["loops.min_similarity=-2"], "loops.min_similarity must be in [-1, 1]"),
         (["dataset.depth_scale=-1000"], "dataset.depth_scale must be > 0"),
