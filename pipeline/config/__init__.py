@@ -14,10 +14,8 @@ from pipeline.config.loading import (
 from pipeline.config.schema import (
     DATASET_DEFAULTS,
     DEFAULT_PRESET_CPU,
-    PRESET_SPLATS,
     PRESET_TRACKING,
     PRESETS,
-    SPLATAM_SPLATS,
     SYNTHETIC_CPU,
     SYNTHETIC_GPU,
     ColorEncoding,
@@ -51,7 +49,7 @@ from pipeline.config.schema import (
 )
 
 __all__ = [
-    "DATASET_DEFAULTS", "DEFAULT_PRESET_CPU", "PRESET_SPLATS", "PRESET_TRACKING", "PRESETS", "SPLATAM_SPLATS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
+    "DATASET_DEFAULTS", "DEFAULT_PRESET_CPU", "PRESET_TRACKING", "PRESETS", "SYNTHETIC_CPU", "SYNTHETIC_GPU", "ColorEncoding", "Config", "DatasetConfig",
     "DatasetFormat", "DensifyConfig", "GaussianConfig", "GaussianKind", "KeyframeConfig", "LiveConfig", "LoaderKind", "LoopConfig",
     "LossConfig", "MapOptimizerKind", "MappingConfig", "PoseUse", "RenderBackend", "RenderConfig", "RunConfig",
     "Schedule", "SlamConfig", "Switch", "SyntheticConfig", "TrackingConfig", "TrackingMethod", "ViewerConfig",

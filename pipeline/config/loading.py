@@ -17,7 +17,7 @@ from typing import Any, Literal
 import tomli_w
 
 from pipeline.config.choices import did_you_mean, nearest, unknown_name
-from pipeline.config.schema import DATASET_DEFAULTS, PRESET_SPLATS, PRESET_TRACKING, PRESETS, Config
+from pipeline.config.schema import DATASET_DEFAULTS, PRESET_TRACKING, PRESETS, Config
 from pipeline.errors import UserError
 
 
@@ -25,15 +25,12 @@ def preset_config(name: str) -> Config:
     if name not in PRESETS:
         raise unknown_name("preset", name, PRESETS)
     track, mapping, window, every = PRESETS[name]
-    seed_scale, seed_opacity, eps2d = PRESET_SPLATS[name]
     base = Config(preset=name)
     return replace(
         base,
         tracking=replace(base.tracking, iters=track, method=PRESET_TRACKING[name]),
         mapping=replace(base.mapping, iters=mapping, window=window),
         keyframes=replace(base.keyframes, every=every),
-        gaussians=replace(base.gaussians, seed_scale=seed_scale, seed_opacity=seed_opacity),
-        render=replace(base.render, eps2d=eps2d),
     )
 
 

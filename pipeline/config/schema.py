@@ -335,16 +335,6 @@ PRESETS: dict[str, tuple[int, int, int, int]] = {
 # The tracking method of each preset: the one place to flip after measuring (bench part `tracker`).
 PRESET_TRACKING: dict[str, TrackingMethod] = {"base": "adam", "small": "align", "tiny": "align", "tum": "adam"}
 
-# Seed scale (pixel footprints), seed opacity and the renderer's anti-aliasing floor (pixels^2)
-# of each preset. SplaTAM's (1, 0.5, 0.3) blend each seed with its neighbours so much that the
-# render's depth comes out short on slanted surfaces, and a frame aligned to it is pulled off its
-# pose; with tiny's few mapping iterations the error stays in the map (the cabinet loop at 320x240
-# on the CPU: 7.90 -> 4.33 cm ATE; bench/NOTES.md, Change 40).
-SPLATAM_SPLATS = (1.0, 0.5, 0.3)
-PRESET_SPLATS: dict[str, tuple[float, float, float]] = {
-    "base": SPLATAM_SPLATS, "small": SPLATAM_SPLATS, "tiny": (0.35, 0.99, 0.1), "tum": SPLATAM_SPLATS,
-}  # fmt: skip
-
 # Values that SplaTAM tunes per dataset family.
 DATASET_DEFAULTS: dict[str, dict[str, float]] = {
     "replica": {"tracking.lr_rotation": 0.0004, "mapping.scene_radius_divisor": 3.0, "dataset.depth_scale": 6553.5},
