@@ -5,16 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.config import (
-    PRESET_SPLATS,
-    PRESET_TRACKING,
-    PRESETS,
-    SPLATAM_SPLATS,
-    load_config,
-    preset_config,
-    to_toml,
-    with_dataset_defaults,
-)
+from pipeline.config import PRESET_TRACKING, PRESETS, load_config, preset_config, to_toml, with_dataset_defaults
 from pipeline.errors import UserError
 
 
@@ -33,15 +24,6 @@ def test_the_tracking_method_follows_the_preset_and_can_be_chosen() -> None:
     assert load_config("tiny", overrides=["tracking.method=adam"]).tracking.method == "adam"
     config = load_config("base", overrides=["tracking.method=align", "tracking.align_iters=8,4"])
     assert config.tracking.method == "align" and config.tracking.align_iters == (8, 4)
-
-
-def test_the_seeds_follow_the_preset_splatams_but_for_tiny() -> None:
-    splats = {name: preset_config(name) for name in PRESETS}
-    assert {
-        name: (c.gaussians.seed_scale, c.gaussians.seed_opacity, c.render.eps2d) for name, c in splats.items()
-    } == PRESET_SPLATS
-    assert {name for name, splat in PRESET_SPLATS.items() if splat != SPLATAM_SPLATS} == {"tiny"}
-    assert load_config("tiny", overrides=["gaussians.seed_scale=1"]).gaussians.seed_scale == 1.0
 
 
 def test_shared_defaults() -> None:
