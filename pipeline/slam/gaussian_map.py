@@ -27,7 +27,9 @@ def seed_gaussians(
     `config.seed_opacity`; scale: `config.seed_scale` footprints of the pixel (depth / mean
     focal length), repeated when anisotropic. SplaTAM's seeds (one footprint, opacity 0.5)
     overlap their neighbours so much that a render of them composites nearer neighbours first
-    and its depth comes out short on slanted surfaces (bench/NOTES.md, Change 40).
+    and its depth comes out short on slanted surfaces: by half a pixel's depth step, so the
+    pull on a frame halves with each doubling of the resolution (0.26 cm on a real frame at
+    640x480; bench/NOTES.md, Change 40).
     """
     u, v = pixel_grid(depth.shape[0], depth.shape[1], depth.device)
     pixels = mask.reshape(-1).nonzero()[:, 0]  # one read-back of the count, shared by every gather
