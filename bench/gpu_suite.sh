@@ -79,10 +79,10 @@ run_part() {
               bench "$cabinet" --presets tiny --repeats "${REPEATS:-1}" \
                 --variants ${ADJUST_VARIANTS:-sequential-odometry,sequential-odometry-adjust,sequential-odometry-global,sequential-odometry-loops,sequential-odometry-adjust-loops} \
                 --set dataset.width=640 --set dataset.height=480 --stem drift_adjust_cabinet ;;
-    seeds)  # issue 35, Change 40: tiny's seeds (0.35 footprints, opacity 0.99, eps2d 0.1) against SplaTAM's: drift on the cabinet, then pace and map at 640x480
+    seeds)  # issue 35, Change 40: small seeds (0.35 footprints, opacity 0.99, eps2d 0.1) against SplaTAM's: drift on the cabinet, then pace and map at 640x480
            bench "$cabinet" --presets tiny --set dataset.width=640 --set dataset.height=480 --stem seeds_cabinet \
-             --variants sequential-odometry-splatam-seeds,sequential-odometry,process-splatam-seeds,process
-           bench "$tum" synthetic-tum --presets tiny --variants process-splatam-seeds,process --stem seeds_pace ;;
+             --variants sequential-odometry,sequential-odometry-small-seeds,process,process-small-seeds
+           bench "$tum" synthetic-tum --presets tiny --variants process,process-small-seeds --stem seeds_pace ;;
     drift-cabinet) bench "$cabinet" --presets tiny --variants process-one-render,process,process-adjust \
                      --set dataset.width=640 --set dataset.height=480 --stem drift_cabinet_tiny ;;
     graph) for g in on off; do  # graphed mapping passes against eager ones, side by side in one call
