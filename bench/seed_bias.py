@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.app.report import versions  # noqa: E402
 from pipeline.config import DatasetConfig, RenderBackend, SyntheticConfig, load_config  # noqa: E402
-from pipeline.frame import DeviceFrame  # noqa: E402
+from pipeline.frame import DeviceFrame, Frame  # noqa: E402
 from pipeline.geometry import invert_pose  # noqa: E402
 from pipeline.io.files.atomic import atomic_write_text  # noqa: E402
 from pipeline.io.sources.datasets.loader import open_dataset  # noqa: E402
@@ -34,37 +34,26 @@ from pipeline.io.sources.datasets.synthetic import default_intrinsics, make_scen
 from pipeline.render import Camera, make_renderer  # noqa: E402
 from pipeline.slam.gaussian_map import seed_gaussians  # noqa: E402
 from pipeline.slam.tracking.align_tracker import AlignTracker  # noqa: E402
-from pipeline.stages.upload import host_frame_tensors  # noqa: E402
+from pipeline.stages.upload import make_uploader  # noqa: E402
 
 SEEDS = {"splatam (1, 0.5, 0.3)": (1.0, 0.5, 0.3), "small (0.35, 0.99, 0.1)": (0.35, 0.99, 0.1)}
 
 
-def on_device(frame: DeviceFrame, device: torch.device) -> DeviceFrame:
-    return replace(
-        frame, color=frame.color.to(device), depth=frame.depth.to(device), intrinsics=frame.intrinsics.to(device)
-    )
-
-
-def generated_frame(width: int, height: int, device: torch.device) -> tuple[DeviceFrame, torch.Tensor]:
+def generated_frame(width: int, height: int) -> tuple[Frame, torch.Tensor]:
     """The generator's room seen from its fast loop's 11th pose, as in tests/slam/test_slam.py
     -> (frame, c2w [4, 4])."""
     synthetic = SyntheticConfig(width=width, height=height, speed=1.0, fps=8.0, loops=1)
-    c2w = torch.from_numpy(trajectory(synthetic, 11)[10]).float()
+    c2w = trajectory(synthetic, 11)[10]
     intrinsics = default_intrinsics(width, height)
-    color, depth = render_view(make_scene(0), c2w.numpy(), intrinsics, width, height)
-    colors = torch.from_numpy(color).float() / 255
-    frame = DeviceFrame(0, 0.0, colors, torch.from_numpy(depth), torch.from_numpy(intrinsics).float(), None)
-    return on_device(frame, device), c2w.to(device)
+    color, depth = render_view(make_scene(0), c2w, intrinsics, width, height)
+    return Frame(0, 0.0, color, depth, intrinsics, None), torch.from_numpy(c2w).float()
 
 
-def dataset_frame(
-    folder: str, index: int, width: int, height: int, device: torch.device
-) -> tuple[DeviceFrame, torch.Tensor]:
+def dataset_frame(folder: str, index: int, width: int, height: int) -> tuple[Frame, torch.Tensor]:
     """Frame `index` of a dataset at width x height -> (frame, c2w [4, 4]: the identity, since
     the map is seeded and tracked in the frame's own coordinates)."""
     dataset = open_dataset(DatasetConfig(path=folder, width=width, height=height))
-    frame = host_frame_tensors(dataset.decode(dataset.refs[index]))
-    return on_device(frame, device), torch.eye(4, device=device)
+    return dataset.decode(dataset.refs[index]), torch.eye(4)
 
 
 def measure(frame: DeviceFrame, c2w: torch.Tensor, backend: RenderBackend, seeds: tuple[float, float, float]) -> dict:
@@ -101,12 +90,11 @@ def main() -> None:
     rows = []
     for size in args.sizes.split(","):
         width, height = (int(n) for n in size.split("x"))
-        frames = {"generated room": generated_frame(width, height, device)}
+        frames = {"generated room": generated_frame(width, height)}
         if args.dataset:
-            frames[f"{Path(args.dataset).name}[{args.index}]"] = dataset_frame(
-                args.dataset, args.index, width, height, device
-            )
-        for name, (frame, c2w) in frames.items():
+            frames[f"{Path(args.dataset).name}[{args.index}]"] = dataset_frame(args.dataset, args.index, width, height)
+        for name, (host, c2w_host) in frames.items():
+            frame, c2w = make_uploader(device, slots=1)(host).wait(), c2w_host.to(device)
             for backend in backends:
                 for seeds_name, seeds in SEEDS.items():
                     row = {"frame": name, "size": size, "renderer": backend, "seeds": seeds_name}

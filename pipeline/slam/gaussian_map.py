@@ -28,8 +28,8 @@ def seed_gaussians(
     focal length), repeated when anisotropic. SplaTAM's seeds (one footprint, opacity 0.5)
     overlap their neighbours so much that a render of them composites nearer neighbours first
     and its depth comes out short on slanted surfaces, by an amount that follows the pixel's
-    footprint: the pull on a frame halves with each doubling of the resolution (0.26 cm on a real frame at
-    640x480; bench/NOTES.md, Change 40).
+    footprint: the pull on a frame halves with each doubling of the resolution (0.26 cm on a
+    real frame at 640x480; bench/NOTES.md, Change 40).
     """
     u, v = pixel_grid(depth.shape[0], depth.shape[1], depth.device)
     pixels = mask.reshape(-1).nonzero()[:, 0]  # one read-back of the count, shared by every gather

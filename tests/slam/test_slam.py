@@ -9,7 +9,7 @@ import torch
 from conftest import SMALL_SYNTH
 
 from pipeline.config import DatasetConfig, DensifyConfig, SyntheticConfig, load_config, with_dataset_defaults
-from pipeline.frame import DeviceFrame
+from pipeline.frame import Frame
 from pipeline.geometry import (
     constant_velocity,
     invert_pose,
@@ -71,17 +71,11 @@ def test_smaller_opaque_seeds_render_depth_the_tracker_does_not_move_away_from()
     footprints, opacity 0.99: 0.8-1.8 cm (bench/NOTES.md, Change 40)."""
     width, height = 160, 120
     synthetic = SyntheticConfig(width=width, height=height, speed=1.0, fps=8.0, loops=1)
-    c2w = torch.from_numpy(trajectory(synthetic, 11)[10]).float()
+    pose = trajectory(synthetic, 11)[10]
     intrinsics = default_intrinsics(width, height)
-    color, depth = render_view(make_scene(0), c2w.numpy(), intrinsics, width, height)
-    frame = DeviceFrame(
-        0,
-        0.0,
-        torch.from_numpy(color).float() / 255,
-        torch.from_numpy(depth),
-        torch.from_numpy(intrinsics).float(),
-        None,
-    )
+    color, depth = render_view(make_scene(0), pose, intrinsics, width, height)
+    frame = host_frame_tensors(Frame(0, 0.0, color, depth, intrinsics, None))
+    c2w = torch.from_numpy(pose).float()
     config = load_config("tiny")
     tracker = AlignTracker(make_renderer(config.render, config.gaussians, CPU), config.tracking, 0.01, 100.0)
     moved = []
